@@ -1,0 +1,51 @@
+"""Build script for lidar_cam_calib (ament_python for colcon, plain pip for venvs)."""
+import os
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "lidar_cam_calib"
+
+
+def data_files():
+    out = [
+        ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
+        ("share/" + PACKAGE, ["package.xml"]),
+        ("share/" + PACKAGE + "/config", sorted(glob("config/*.yaml"))),
+        ("share/" + PACKAGE + "/config/scenarios", sorted(glob("config/scenarios/*.yaml"))),
+    ]
+    # Shipped bags: keep the directory structure (a rosbag2 bag is a directory).
+    for root, _dirs, files in os.walk("bags"):
+        if files:
+            out.append((os.path.join("share", PACKAGE, root), sorted(os.path.join(root, f) for f in files)))
+    return out
+
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=data_files(),
+    # ROS (rclpy, message packages) comes from apt on a robot or from the
+    # ros-jazzy-* wheels in dev/CI (requirements-dev.txt); never pinned here.
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "opencv-python-headless>=4.8,<5",
+        "pyyaml>=6",
+        "rosbags>=0.10",
+        "mcap>=1.1",
+    ],
+    zip_safe=False,
+    maintainer="lidar_cam_calib developers",
+    maintainer_email="dev@lidar-cam-calib.invalid",
+    description="Extrinsic calibration of range sensors and cameras for ROS 2 Jazzy",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "lrf_calib_node = lidar_cam_calib.ros.lrf_node:main",
+            "lidar-cam-calib = lidar_cam_calib.cli:main",
+        ],
+    },
+)
