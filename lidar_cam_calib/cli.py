@@ -54,7 +54,11 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
             print(f"  {k}: {r.metrics[k]}")
     if st.get("advice"):
         print(f"  advice: {st['advice']}")
-    print(f"  result file: {out}" + (f", overlay: {a.overlay}" if a.overlay else ""))
+    file_note = st.get("result_file", "")
+    if file_note.startswith("result NOT saved"):
+        print(f"error: {file_note}", file=sys.stderr)
+    else:
+        print(f"  result file: {file_note or out}" + (f"; overlay: {a.overlay}" if a.overlay else ""))
     if a.truth:
         T_true = load_truth(a.truth)
         er, et = pose_errors(r.T_child_parent, T_true)
@@ -64,7 +68,7 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
     if oc.bag_error:
         print(f"error: {oc.bag_error}", file=sys.stderr)
         return 4
-    return 0
+    return 5 if file_note.startswith("result NOT saved") else 0
 
 
 def _cmd_simulate(a: argparse.Namespace) -> int:
@@ -72,7 +76,7 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     from .sim.scenario import load_scenario
 
     sc = load_scenario(a.scenario) if a.scenario else load_scenario(_default_scenario_path(a.method))
-    bag, truth = write_lrf_bag(sc, a.out, seed=a.seed)
+    bag, truth = write_lrf_bag(sc, a.out, seed=a.seed, overwrite=a.overwrite)
     print(f"wrote {bag}\ntruth {truth}")
     return 0
 
@@ -121,8 +125,9 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("simulate", help="write a synthetic bag and its ground truth")
     s.add_argument("method", choices=["lrf"])
     s.add_argument("--scenario", help="scenario YAML (default config/scenarios/<method>_default.yaml)")
-    s.add_argument("--out", required=True, help="output bag directory")
+    s.add_argument("--out", required=True, help="output folder: the bag is written to OUT/<scenario name>/")
     s.add_argument("--seed", type=int)
+    s.add_argument("--overwrite", action="store_true", help="replace an existing bag of the same name")
 
     b = sub.add_parser("bench", help="benchmarks: lrf (paper vs ours), decode (message conversion)")
     b.add_argument("what", choices=["lrf", "decode"])

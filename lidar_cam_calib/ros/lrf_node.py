@@ -43,7 +43,6 @@ class LrfCalibNode(CalibNodeBase):
                            0.001, 1.0)
         self.declare_float("sync_slop_s", 0.05, "Max stamp difference between a scan and a depth image to pair them.",
                            0.001, 1.0)
-        self.declare_str("solver", "ours", "Solver used for the published result: 'ours' or 'paper'.")
         # Every field of LrfConfig is a parameter of the same name.
         self._cfg_names = []
         for f in dataclasses.fields(LrfConfig):

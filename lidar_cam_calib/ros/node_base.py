@@ -74,6 +74,7 @@ class CalibNodeBase(Node):
         self._best_on_disk: CalibrationResult | None = None
         self.last_result: CalibrationResult | None = None
         self.last_reason = ""
+        self.last_file_note = ""
 
         self.declare_str("output_path", "~/.ros/lidar_cam_calib/" + self.method_name + ".yaml",
                          "Where the result YAML is written (atomic; previous kept as .bak). Empty: no file.")
@@ -162,7 +163,8 @@ class CalibNodeBase(Node):
     # -- outputs -----------------------------------------------------------
     def status_dict(self) -> dict:
         """Override to add method progress; keep it JSON-serialisable."""
-        return {"node": self.get_name(), "method": self.method_name, "last_reason": self.last_reason}
+        return {"node": self.get_name(), "method": self.method_name, "last_reason": self.last_reason,
+                "result_file": self.last_file_note}
 
     def publish_status(self, extra: dict | None = None) -> dict:
         d = self.status_dict()
@@ -188,7 +190,8 @@ class CalibNodeBase(Node):
                 self.get_logger().warning(f"/tf_static publish failed: {e}")
         yaml_text = result.to_yaml()
         self.pub_yaml.publish(String(data=yaml_text))
-        return self._write_file(result)
+        self.last_file_note = self._write_file(result)
+        return self.last_file_note
 
     def transform_msg(self, result: CalibrationResult, stamp=None) -> TransformStamped:
         t, q = result.tf_translation_rotation()

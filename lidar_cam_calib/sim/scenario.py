@@ -103,9 +103,9 @@ class MountConfig:
     Defaults (paper Table 3): camera 128 mm in front of, 60 mm left of and 10 mm below the laser.
     """
 
-    laser_xyz_m: list = field(default_factory=lambda: [0.10, 0.0, 0.45])
+    laser_xyz_m: list = field(default_factory=lambda: [0.10, 0.0, 0.65])
     laser_rpy_deg: list = field(default_factory=lambda: [0.5, -0.3, 0.2])
-    camera_xyz_m: list = field(default_factory=lambda: [0.228, 0.060, 0.440])
+    camera_xyz_m: list = field(default_factory=lambda: [0.228, 0.060, 0.640])
     camera_rpy_deg: list = field(default_factory=lambda: [0.0, 0.0, 0.0])
     agv_frame_id: str = "base_link"
     world_frame_id: str = "map"
@@ -123,7 +123,7 @@ class PosesConfig:
     """
 
     n_poses: int = 20
-    distance_m: list = field(default_factory=lambda: [1.5, 4.0])
+    distance_m: list = field(default_factory=lambda: [1.2, 3.0])
     lateral_m: list = field(default_factory=lambda: [-0.8, 0.8])
     yaw_deg: list = field(default_factory=lambda: [-30.0, 30.0])
     board_position_m: list = field(default_factory=lambda: [6.5, 0.0])

@@ -1,0 +1,76 @@
+import numpy as np
+import pytest
+
+from lidar_cam_calib.core.camera import CameraModel
+from lidar_cam_calib.core.geometry import pose_errors
+from lidar_cam_calib.lrf import calibrator as C
+from lidar_cam_calib.lrf.bench import synthetic_observations
+from lidar_cam_calib.lrf.frame import LrfFrame
+
+
+def _frame(stamp):
+    cam = CameraModel.from_K(64, 36, 30.0, 30.0, 32, 18)
+    return LrfFrame(stamp, np.full(500, np.inf), -np.pi, 2 * np.pi / 500, 0.1, 30.0,
+                    np.full((36, 64), np.nan, np.float32), cam)
+
+
+def test_static_detector_fires_once_per_stop():
+    d = C.StaticDetector(static_time_s=1.0, range_tol_m=0.01)
+    r = np.full(100, 3.0)
+    fired = [d.update(t * 0.1, r) for t in range(30)]
+    assert sum(fired) == 1 and fired.index(True) == 10
+    assert not d.update(3.1, r + 0.5)          # motion re-arms
+    fired = [d.update(3.2 + t * 0.1, r + 0.5) for t in range(15)]
+    assert sum(fired) == 1
+
+
+def test_rejections_have_reasons(monkeypatch):
+    cal = C.LrfCalibrator()
+    v = cal.add(_frame(1.0))
+    assert not v.accepted and "no valid ranges" in v.reason
+    assert not cal.ready() and cal.status()["last_reason"] == v.reason
+    # duplicate pose and stamp order, with features replaced by analytic ones
+    obs, T = synthetic_observations(3, 7)
+    feats = iter(obs + obs)
+
+    class SF:  # minimal stand-ins carrying what make_observation needs
+        pass
+
+    def fake_make(sf, df, stamp, sigma):
+        o = next(feats)
+        o.stamp_s = stamp
+        return o
+    monkeypatch.setattr(C, "extract_scan_features", lambda f, cfg: type("S", (), {"corners_m": obs[int(f.stamp_s) % 3].corners_laser_m})())
+    monkeypatch.setattr(C, "extract_depth_features", lambda f, cfg: None)
+    monkeypatch.setattr(C, "make_observation", fake_make)
+    assert cal.add(_frame(3.0)).accepted
+    v = cal.add(_frame(6.0))  # same corners as observation 1
+    assert not v.accepted and "pose too similar to observation 1" in v.reason
+    v = cal.add(_frame(2.0))
+    assert not v.accepted and "out of order" in v.reason
+    assert cal.add(_frame(4.0)).accepted and cal.add(_frame(5.0)).accepted
+    res = cal.fit()
+    assert res.method == "lrf" and res.observations_used == 3
+    er, et = pose_errors(res.T_child_parent, T)
+    assert er < 3.0 and et < 60.0
+    st = cal.status()
+    assert st["observations"] == 3 and np.isfinite(st["sigma_rotation_deg"])
+    cal.reset()
+    assert cal.status()["observations"] == 0
+
+
+@pytest.mark.xfail(reason='open issue: depth board detection accepts only ~2 of 6 sim frames; '
+                   '2-observation sim result is far off (398 mm) -- see helper report', strict=False)
+def test_end_to_end_on_sim():
+    sim = pytest.importorskip("lidar_cam_calib.sim.lrf_world")
+    from lidar_cam_calib.sim.scenario import default_scenario
+    sc = default_scenario(); sc.poses.n_poses = 6
+    run = sim.simulate(sc, np.random.default_rng(1))
+    cal = C.LrfCalibrator()
+    reasons = [cal.add(LrfFrame.from_sim(o)) for o in run.observations]
+    if not cal.ready():
+        pytest.xfail("depth board detection fails on most sim frames (known open issue): "
+                     + "; ".join(v.reason for v in reasons if not v.accepted)[:300])
+    res = cal.fit()
+    er, et = pose_errors(res.T_child_parent, run.truth.T_camera_laser)
+    assert er < 2.0 and et < 50.0
