@@ -49,9 +49,13 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
     print("  " + np.array2string(r.T_child_parent, precision=5, suppress_small=True).replace("\n", "\n  "))
     print(f"  translation [m] {t[0]:+.4f} {t[1]:+.4f} {t[2]:+.4f}   rpy [deg] {rpy[0]:+.3f} {rpy[1]:+.3f} {rpy[2]:+.3f}")
     print(f"  1-sigma: {rs:.3f} deg, {ts:.2f} mm   observations: {r.observations_used}")
-    for k in ("point_to_line_mm", "plane_rms_mm", "observability"):
-        if k in r.metrics:
-            print(f"  {k}: {r.metrics[k]}")
+    m = r.metrics
+    if "point_to_line_mm" in m:
+        print(f"  eq. 12 point-to-line error {m['point_to_line_mm']:.2f} mm; laser points to camera planes RMS "
+              f"{m.get('plane_rms_mm', float('nan')):.2f} mm")
+    if "observability" in m:
+        print(f"  observability: {m['observability']}"
+              + (f" (weakest: {m['weakest_direction']})" if m.get("weakest_direction") else ""))
     if st.get("advice"):
         print(f"  advice: {st['advice']}")
     file_note = st.get("result_file", "")

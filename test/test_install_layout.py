@@ -13,6 +13,7 @@ def test_colcon_style_install_layout(tmp_path):
     prefix = tmp_path / "install"
     build = tmp_path / "build"
     # What colcon's ament_python build does, without colcon.
+    build.mkdir()
     cmd = [sys.executable, "setup.py", "-q", "egg_info", "--egg-base", str(build),
            "build", "--build-base", str(build), "install", "--prefix", str(prefix),
            "--record", str(tmp_path / "record.txt"), "--single-version-externally-managed"]

@@ -109,8 +109,6 @@ class FeatureConfig:
     depth_sigma_k: float = 0.0031          # stereo depth sigma = k z^2 (1/m)
     depth_sigma_floor_m: float = 0.003
     depth_nsigma: float = 2.5              # inlier / assignment threshold in sigmas
-    depth_ransac_nsigma: float = 1.0       # RANSAC scoring threshold in sigmas (tight: keeps the
-                                           # hypothesis on one face, not across the fold)
     depth_ransac_iterations: int = 200
     depth_ransac_points: int = 3000        # RANSAC hypotheses scored on this many points
     depth_max_planes: int = 14            # largest planar segments considered

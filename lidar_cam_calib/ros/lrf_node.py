@@ -20,8 +20,11 @@ from sensor_msgs.msg import CameraInfo, Image, LaserScan
 from ..io.convert import camera_info_to_model, depth_image_to_m
 from ..io.sync import ApproxTimeSync
 from ..lrf.calibrator import LrfCalibrator, LrfConfig, StaticDetector
+from ..lrf.features import BoardModel
 from ..lrf.frame import LrfFrame
 from ..lrf.overlay import render_overlay
+from rcl_interfaces.msg import ParameterDescriptor
+
 from .node_base import CalibNodeBase, run_node, stamp_to_s
 
 TRIGGERS = ("service", "auto", "both")
@@ -43,21 +46,19 @@ class LrfCalibNode(CalibNodeBase):
                            0.001, 1.0)
         self.declare_float("sync_slop_s", 0.05, "Max stamp difference between a scan and a depth image to pair them.",
                            0.001, 1.0)
-        # Every field of LrfConfig is a parameter of the same name.
+        # Every scalar field of LrfConfig is a parameter of the same name; the
+        # board geometry is board_width_m, board_height_m, board_a_xy_m, board_c_xyz_m.
         self._cfg_names = []
         for f in dataclasses.fields(LrfConfig):
             default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-            if isinstance(default, bool) or isinstance(default, (int, float, str)):
-                desc = f.metadata.get("help", f"LrfConfig.{f.name}")
-                if isinstance(default, bool):
-                    self.declare_bool(f.name, default, desc)
-                elif isinstance(default, int):
-                    self.declare_int(f.name, default, desc, *f.metadata.get("range", (-2**31, 2**31 - 1)))
-                elif isinstance(default, float):
-                    self.declare_float(f.name, default, desc, *f.metadata.get("range", (-1e9, 1e9)))
-                else:
-                    self.declare_str(f.name, default, desc)
+            if isinstance(default, (bool, int, float, str)):
+                self._declare_typed(f.name, default, f.metadata.get("help", f"LrfConfig.{f.name}"))
                 self._cfg_names.append(f.name)
+        for f in dataclasses.fields(BoardModel):
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+            self._declare(f"board_{f.name}", [float(v) for v in default] if isinstance(default, tuple)
+                          else float(default), ParameterDescriptor(description=f"folded board: {f.name} "
+                                                                   "(board frame: x right, y up, z out, m)"))
 
         trig = self.param("trigger")
         if trig not in TRIGGERS:
@@ -82,8 +83,22 @@ class LrfCalibNode(CalibNodeBase):
             f"info={self.param('camera_info_topic')} trigger={trig}")
         self.announce_ready()
 
+    def _declare_typed(self, name: str, default, desc: str) -> None:
+        if isinstance(default, bool):
+            self.declare_bool(name, default, desc)
+        elif isinstance(default, int):
+            self.declare_int(name, default, desc, 0, 2**31 - 1)
+        elif isinstance(default, float):
+            self.declare_float(name, default, desc, 0.0, 1e6)
+        else:
+            self.declare_str(name, default, desc)
+
     def _config(self) -> LrfConfig:
-        return LrfConfig(**{n: self.param(n) for n in self._cfg_names})
+        board = BoardModel(**{f.name: (tuple(self.param(f"board_{f.name}"))
+                                       if isinstance(self.param(f"board_{f.name}"), (list, tuple))
+                                       else self.param(f"board_{f.name}"))
+                              for f in dataclasses.fields(BoardModel)})
+        return LrfConfig(board=board, **{n: self.param(n) for n in self._cfg_names})
 
     # -- inputs ----------------------------------------------------------------
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -104,6 +119,7 @@ class LrfCalibNode(CalibNodeBase):
                 self._capture(auto=True, fired_at_s=t)
 
     def _on_depth(self, msg: Image) -> None:
+        depth_image_to_m(msg)  # reject a wrong encoding or size at once, with its reason
         for pair in self.sync.push("depth", stamp_to_s(msg.header.stamp), msg):
             self.latest_pair = pair
 
@@ -183,9 +199,14 @@ class LrfCalibNode(CalibNodeBase):
     def status_dict(self) -> dict:
         d = super().status_dict()
         try:
-            d.update(self.calib.status())
+            cal = self.calib.status()
         except Exception as e:  # noqa: BLE001
-            d["status_error"] = str(e)
+            cal = {"status_error": str(e)}
+        # The node's own reason (bad message, missing CameraInfo, ...) wins over
+        # the calibrator's, which only knows about observations.
+        reason = self.last_reason or cal.get("last_reason", "")
+        d.update(cal)
+        d["last_reason"] = reason
         d["camera_info"] = self.camera is not None
         d["dropped_out_of_order"] = getattr(self.sync, "dropped_out_of_order", 0)
         if self.last_result is not None:

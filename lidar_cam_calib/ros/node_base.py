@@ -71,10 +71,13 @@ class CalibNodeBase(Node):
         super().__init__(node_name, **kwargs)
         self._factory = RclpyFactory()
         self._input_count = 0
-        self._best_on_disk: CalibrationResult | None = None
         self.last_result: CalibrationResult | None = None
         self.last_reason = ""
         self.last_file_note = ""
+        # Once this run has written the file, later fits of the same collection
+        # (more observations) replace it; the better-or-not guard protects a
+        # calibration from an earlier run or another collection.
+        self._wrote_this_collection = False
 
         self.declare_str("output_path", "~/.ros/lidar_cam_calib/" + self.method_name + ".yaml",
                          "Where the result YAML is written (atomic; previous kept as .bak). Empty: no file.")
@@ -210,14 +213,15 @@ class CalibNodeBase(Node):
             return "no output_path set: result not written to disk"
         path = os.path.expanduser(path)
         try:
-            written, note = save_if_better(result, path, force=bool(self.param("force_overwrite")))
+            written, note = save_if_better(result, path, force=bool(self.param("force_overwrite"))
+                                           or self._wrote_this_collection)
         except ResultFileError as e:
             note = f"result NOT saved: {e}"
             self.get_logger().error(note)
             self.last_reason = note
             return note
         if written:
-            self._best_on_disk = result
+            self._wrote_this_collection = True
             self.get_logger().info(note)
         else:
             self.get_logger().warning(note)
@@ -251,7 +255,6 @@ class CalibNodeBase(Node):
         except ResultFileError as e:
             self.get_logger().warning(f"ignoring unreadable previous result: {e}")
             return
-        self._best_on_disk = res
         ts = self.transform_msg(res)
         self.pub_transform.publish(ts)
         self.pub_yaml.publish(String(data=res.to_yaml()))
@@ -290,6 +293,7 @@ class CalibNodeBase(Node):
 
     # -- services ------------------------------------------------------------
     def _srv_recalibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._wrote_this_collection = False
         try:
             response.success, response.message = self.on_recalibrate()
         except Exception as e:  # noqa: BLE001
