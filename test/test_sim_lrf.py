@@ -157,7 +157,8 @@ def test_board_scan_crosses_AB_AC_AD_in_order():
     pb = transform_points(inv_T(T_laser_board), pts)
     assert np.max(np.abs(pb[:, 1] - 0.5)) < 1e-9
     g = pb[lab[hit] != FACE_BASE]
-    assert g[:, 2].max() == pytest.approx(0.175, abs=2e-3)  # G on AC protrudes c_z * y / h
+    c_z, h = b.vertices["C"][2], b.height_m
+    assert g[:, 2].max() == pytest.approx(c_z * 0.5 / h, abs=2e-3)  # G on AC protrudes c_z * y / h
 
 
 # --------------------------------------------------------------------------- scenario

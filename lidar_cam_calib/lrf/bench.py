@@ -12,6 +12,7 @@ Two data sources:
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import math
 import sys
@@ -22,8 +23,8 @@ import numpy as np
 from ..core.geometry import R_BODY_OPTICAL, R_from_rpy, inv_T, make_T, pose_errors
 from .features import (BoardModel, FeatureConfig, corner_covariance, make_observation)
 from ..core.fitting import fit_line_2d_lsq, fit_plane_lsq, intersect_lines_2d
-from .solvers import (LrfObservation, OursOptions, PlaneStats, point_to_line_error_m, solve_ours,
-                      solve_paper)
+from .solvers import (LrfObservation, OursOptions, PlaneStats, point_to_line_error_m,
+                      reject_outlier_observations, resolve_assignment, solve_ours, solve_paper)
 
 
 # ----------------------------------------------------------------------------
@@ -223,18 +224,31 @@ def _sim_observations(n: int, seed: int, scenario=None, right: bool = False, cfg
     cfg = cfg or FeatureConfig(board=BoardModel.from_config(sc.board), laser_sigma_m=sc.laser.range_sigma_m)
     out = {False: [], True: []}
     failures = []
+    feature_s = []
     for o in run.observations:
         try:
             per = {}
             for side in ((False, True) if right else (False,)):
                 fr = LrfFrame.from_sim(o, right=side)
+                t0 = time.perf_counter()
                 per[side] = make_observation(extract_scan_features(fr, cfg), extract_depth_features(fr, cfg),
                                              fr.stamp_s, cfg.laser_sigma_m)
+                if not side:
+                    feature_s.append(time.perf_counter() - t0)
             for side, ob in per.items():
                 out[side].append(ob)
         except FeatureError as e:
             failures.append(str(e))
+    _sim_observations.last_feature_s = float(np.median(feature_s)) if feature_s else float("nan")
     return out, run.truth, failures
+
+
+def _prepare(obs):
+    if len(obs) < 2:
+        return obs, []
+    obs, _ = resolve_assignment(obs)
+    kept, dropped, _ = reject_outlier_observations(obs)
+    return kept, dropped
 
 
 def run_bench(observations: int, seed: int, scenario=None, source: str = "sim") -> dict:
@@ -249,13 +263,22 @@ def run_bench(observations: int, seed: int, scenario=None, source: str = "sim") 
         return res
     out, truth, failures = _sim_observations(observations, seed, scenario, right=True)
     res["feature_failures"] = failures
+    res["features_ms_per_observation"] = 1000 * _sim_observations.last_feature_s
     left, right = out[False], out[True]
     res["observations_used"] = len(left)
     if len(left) < 2:
         res["error"] = f"only {len(left)} frames with features"
         return res
+    # What the node does before solving (both solvers then get the same data):
+    # check the triangle pairing, leave out observations that disagree.
+    left, dropped = _prepare(left)
+    right, _ = _prepare(right)
+    res["observations_rejected"] = len(dropped)
     rl = evaluate_solvers(left, truth.T_camera_laser)
     res["solvers"] = {k: _strip(v) for k, v in rl.items()}
+    for v in res["solvers"].values():
+        # what one observation costs the node: its features plus its share of the fit
+        v["ms_per_observation"] = res["features_ms_per_observation"] + 1000 * v["runtime_s"] / len(left)
     if len(right) >= 2:
         rr = evaluate_solvers(right, truth.T_camera_right_laser)
         sb = {}
@@ -272,34 +295,50 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="lidar-cam-calib bench lrf", description=__doc__.splitlines()[0])
     ap.add_argument("--observations", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--repeats", type=int, default=1, help="seeds seed, seed+1, ... (mean reported)")
     ap.add_argument("--sweep", action="store_true", help="N in {2, 5, 10, 20}")
-    ap.add_argument("--source", choices=("sim", "synthetic"), default="synthetic")
-    ap.add_argument("--scenario", default=None, help="scenario YAML (sim source)")
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--source", choices=("sim", "synthetic"), default="sim",
+                    help="sim: simulator + real feature extraction (default); synthetic: analytic features")
+    ap.add_argument("--scenario", default=None, help="scenario YAML (sim source; default: paper 003 sensors)")
+    ap.add_argument("--json", default=None, help="write the run (one) or all runs (sweep/repeats) as JSON")
     a = ap.parse_args(argv)
     Ns = [2, 5, 10, 20] if a.sweep else [a.observations]
     rows, runs = [], []
     for N in Ns:
         acc = {"paper": [], "ours": []}
+        base = {"paper": [], "ours": []}
+        used = []
         for k in range(a.repeats):
             r = run_bench(N, a.seed + k, a.scenario, a.source)
             runs.append(r)
+            used.append(r.get("observations_used", N))
             for s in acc:
                 if "solvers" in r:
                     v = r["solvers"][s]
                     acc[s].append([v["rotation_error_deg"], v["translation_error_mm"], v["point_to_line_mm"],
-                                   v["runtime_s"]])
+                                   v.get("ms_per_observation", 1000 * v["runtime_s"] / N)])
+                if "stereo_baseline" in r:
+                    base[s].append(r["stereo_baseline"][s]["baseline_error_mm"])
         for s, v in acc.items():
             if v:
                 m = np.mean(v, axis=0)
-                rows.append((N, s, len(v), *m))
-    print(f"{'N':>3} {'solver':>6} {'runs':>4} {'rot_deg':>8} {'trans_mm':>9} {'p2l_mm':>7} {'time_ms':>8}")
-    for N, s, k, er, et, pl, rt in rows:
-        print(f"{N:>3} {s:>6} {k:>4} {er:8.3f} {et:9.2f} {pl:7.2f} {rt * 1000:8.1f}")
+                rows.append((N, s, len(v), float(np.mean(used)), *m,
+                             float(np.mean(base[s])) if base[s] else float("nan")))
+    print(f"{'N':>3} {'solver':>6} {'runs':>4} {'used':>5} {'rot_deg':>8} {'trans_mm':>9} {'p2l_mm':>7} "
+          f"{'ms/obs':>7} {'stereo_baseline_err_mm':>22}")
+    for N, s, k, u, er, et, pl, rt, be in rows:
+        print(f"{N:>3} {s:>6} {k:>4} {u:5.1f} {er:8.3f} {et:9.2f} {pl:7.2f} {rt:7.1f} {be:22.2f}")
+    by = {}
+    for N, s, k, u, er, et, *_ in rows:
+        by.setdefault(N, {})[s] = (er, et)
+    for N, d in by.items():
+        if "paper" in d and "ours" in d and d["ours"][0] > 0 and d["ours"][1] > 0:
+            print(f"N={N}: ours is {d['paper'][0] / d['ours'][0]:.1f}x (rotation) and "
+                  f"{d['paper'][1] / d['ours'][1]:.1f}x (translation) more accurate than paper")
     if a.json:
+        os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
         with open(a.json, "w") as fh:
-            json.dump({"runs": runs, "table": rows}, fh, indent=1, default=float)
+            json.dump(runs[0] if len(runs) == 1 else {"runs": runs, "table": rows}, fh, indent=1, default=float)
     return 0
 
 

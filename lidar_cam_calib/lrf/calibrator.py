@@ -13,7 +13,7 @@ from ..core.result import CalibrationResult
 from .features import (FeatureConfig, FeatureError, extract_depth_features, extract_scan_features,
                        make_observation)
 from .frame import LrfFrame
-from .solvers import OursOptions, resolve_assignment, solve_ours, solve_paper
+from .solvers import OursOptions, reject_outlier_observations, resolve_assignment, solve_ours, solve_paper
 
 
 @dataclasses.dataclass
@@ -110,6 +110,7 @@ class LrfCalibrator:
             raise RuntimeError(f"need >= {max(2, self.cfg.min_observations)} observations, "
                                f"have {len(self.observations)}")
         obs, flags = resolve_assignment(self.observations)
+        obs, dropped, _ = reject_outlier_observations(obs)
         R_raw, t_p, info = solve_paper(obs)
         paper = {"point_to_line_mm": 1000 * info["point_to_line_m"],
                  "point_to_line_so3_mm": 1000 * info["point_to_line_so3_m"],
@@ -117,6 +118,9 @@ class LrfCalibrator:
                  "condition_number": info["condition"]}
         laser_frame, camera_frame = self.frames_meta
         notes = []
+        if dropped:
+            notes.append(f"observations {[i + 1 for i in dropped]} disagree with the others (a corner lies "
+                         "far from its camera line: board mis-detected?) and were left out of the fit")
         if any(flags):
             notes.append(f"triangle correspondence swapped for observations "
                          f"{[i + 1 for i, f in enumerate(flags) if f]} (left/right check)")
@@ -132,6 +136,7 @@ class LrfCalibrator:
             "weakest_direction": sol.observability["weakest_direction"],
             "advice": sol.observability["advice"],
             "paper": paper,
+            "rejected_observations": [i + 1 for i in dropped],
         }
         if solver == "paper":
             T = info["T"]

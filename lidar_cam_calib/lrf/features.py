@@ -52,7 +52,7 @@ class BoardModel:
     width_m: float = 1.0
     height_m: float = 1.0
     a_xy_m: tuple = (0.0, 0.0)
-    c_xyz_m: tuple = (0.0, 1.0, 0.35)
+    c_xyz_m: tuple = (0.0, 1.0, 0.6)
 
     @classmethod
     def from_config(cls, cfg) -> "BoardModel":

@@ -289,6 +289,33 @@ def resolve_assignment(observations: Sequence[LrfObservation], ratio: float = 0.
     return obs, flags
 
 
+def reject_outlier_observations(observations: Sequence[LrfObservation], min_m: float = 0.03,
+                                factor: float = 5.0) -> tuple[list[LrfObservation], list[int], list[float]]:
+    """Drop observations that disagree with the others (a mis-detected board).
+
+    Fit ours (robust loss) on all; an observation whose worst corner lies
+    farther from its camera line than ``max(min_m, factor * median of the
+    observations' worst corners)`` is dropped, the worst first, and the rest
+    refitted; at most a third of them, and only from 3 observations on (with
+    two, nothing tells which one is wrong). Returns (kept, dropped indices,
+    worst corner-line distance of every input observation in metres)."""
+    obs = list(observations)
+    idx = list(range(len(obs)))
+    dropped: list[int] = []
+    worst_all = [float("nan")] * len(obs)
+    while len(idx) >= 3 and len(dropped) < len(obs) // 3:
+        sol = solve_ours([obs[i] for i in idx])
+        R, t = sol.T[:3, :3], sol.T[:3, 3]
+        worst = np.array([float(np.max(corner_line_distances_m(R, t, obs[i]))) for i in idx])
+        for i, w in zip(idx, worst):
+            worst_all[i] = float(w)
+        k = int(np.argmax(worst))
+        if worst[k] <= max(min_m, factor * float(np.median(worst))):
+            break
+        dropped.append(idx.pop(k))
+    return [obs[i] for i in idx], dropped, worst_all
+
+
 # ----------------------------------------------------------------------------
 # Ours: SE(3) refinement with point-on-plane + corner-on-line residuals
 # ----------------------------------------------------------------------------

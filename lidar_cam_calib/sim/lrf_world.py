@@ -48,7 +48,7 @@ class FoldedBoard:
         P = (-w/2, 0, 0)  bottom-left      B = (-w/2, h, 0)  top-left
         Q = ( w/2, 0, 0)  bottom-right     D = ( w/2, h, 0)  top-right
         A = (a_x, a_y, 0) on the base (default bottom-centre)
-        C = (c_x, c_y, c_z) apex, c_z > 0 out of the base (default top-centre, 0.35 m out)
+        C = (c_x, c_y, c_z) apex, c_z > 0 out of the base (default top-centre, 0.6 m out)
 
     Faces (index = label): 0 'base' = rectangle PBDQ (plane z = 0), 1 'abc' = triangle ABC (left
     flap), 2 'acd' = triangle ACD (right flap). Edges: AB = base/abc, AC = abc/acd,
@@ -60,7 +60,7 @@ class FoldedBoard:
 
     def __init__(self, width_m: float = 1.0, height_m: float = 1.0,
                  a_xy_m: Sequence[float] = (0.0, 0.0),
-                 c_xyz_m: Sequence[float] = (0.0, 1.0, 0.35), stand_depth_m: float = 0.0):
+                 c_xyz_m: Sequence[float] = (0.0, 1.0, 0.6), stand_depth_m: float = 0.0):
         self.width_m = float(width_m)
         self.height_m = float(height_m)
         w2, h = 0.5 * self.width_m, self.height_m

@@ -32,7 +32,7 @@ class BoardConfig:
     width_m: float = 1.0
     height_m: float = 1.0
     a_xy_m: list = field(default_factory=lambda: [0.0, 0.0])
-    c_xyz_m: list = field(default_factory=lambda: [0.0, 1.0, 0.35])
+    c_xyz_m: list = field(default_factory=lambda: [0.0, 1.0, 0.6])
     # Optional rear stand panel (a second rectangle behind the board, leaning back); 0 disables.
     stand_depth_m: float = 0.0
 
