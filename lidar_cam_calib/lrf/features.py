@@ -109,8 +109,8 @@ class FeatureConfig:
     depth_sigma_k: float = 0.0031          # stereo depth sigma = k z^2 (1/m)
     depth_sigma_floor_m: float = 0.003
     depth_nsigma: float = 2.5              # inlier / assignment threshold in sigmas
-    depth_ransac_iterations: int = 200
-    depth_ransac_points: int = 3000        # RANSAC hypotheses scored on this many points
+    depth_ransac_iterations: int = 60  
+    depth_ransac_points: int = 1000        # RANSAC hypotheses scored on this many points
     depth_max_planes: int = 14            # largest planar segments considered
     depth_normal_window: int = 5           # box window (decimated pixels) for normals
     depth_angle_tol_deg: float = 12.0      # sum of |angle - board model angle| over the 3 pairs
@@ -522,9 +522,10 @@ def _touch(ci, cj, pts, sig, cfg) -> tuple[bool, np.ndarray, np.ndarray]:
         return False, None, None
     out = []
     for c in (ci, cj):
-        q = pts[c[2]] - p0
+        idx = c[2] if len(c[2]) <= 2000 else c[2][:: len(c[2]) // 2000 + 1]  # enough to find 5 near points
+        q = pts[idx] - p0
         dist = np.linalg.norm(q - np.outer(q @ u, u), axis=1)
-        out.append(int((dist < cfg.depth_touch_m + 2 * sig[c[2]]).sum()))
+        out.append(int((dist < cfg.depth_touch_m + 2 * sig[idx]).sum()))
     return min(out) >= 5, p0, u
 
 
@@ -540,6 +541,9 @@ def _choose_board(cands, pts, sig, cfg):
     touch = {}
     for i in range(K):
         for j in range(i + 1, K):
+            if min(ext[i], ext[j]) > limit or max(ext[i], ext[j]) > 2.0 * limit:
+                touch[(i, j)] = touch[(j, i)] = False  # walls and floor: no board triple has two of them
+                continue
             ang = np.degrees(np.arccos(np.clip(abs(cands[i][0] @ cands[j][0]), 0, 1)))
             touch[(i, j)] = touch[(j, i)] = (ang > 8.0) and _touch(cands[i], cands[j], pts, sig, cfg)[0]
     best = None
