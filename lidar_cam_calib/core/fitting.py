@@ -29,6 +29,18 @@ _CHUNK_ELEMS = 4_000_000  # hypotheses x points evaluated per chunk
 # ----------------------------------------------------------------------------
 # Planes
 # ----------------------------------------------------------------------------
+def _scatter(p: np.ndarray, weights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(Weighted) centroid and scatter matrix of (N, k) points."""
+    if weights is None:
+        c = p.mean(axis=0)
+        q = p - c
+        return c, q.T @ q
+    w = np.asarray(weights, dtype=float).ravel()
+    c = (w[:, None] * p).sum(axis=0) / w.sum()
+    q = p - c
+    return c, (w[:, None] * q).T @ q
+
+
 def fit_plane_lsq(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """Total-least-squares plane through (N,3) points (N >= 3).
 
@@ -36,15 +48,7 @@ def fit_plane_lsq(points: np.ndarray, weights: np.ndarray | None = None) -> tupl
     p = np.asarray(points, dtype=float).reshape(-1, 3)
     if p.shape[0] < 3:
         raise FitError(f"plane fit needs >= 3 points, got {p.shape[0]}")
-    if weights is None:
-        c = p.mean(axis=0)
-        q = p - c
-        S = q.T @ q
-    else:
-        w = np.asarray(weights, dtype=float).ravel()
-        c = (w[:, None] * p).sum(axis=0) / w.sum()
-        q = p - c
-        S = (w[:, None] * q).T @ q
+    c, S = _scatter(p, weights)
     evals, evecs = np.linalg.eigh(S)
     if evals[1] <= 1e-12 * max(evals[2], 1e-300):
         raise FitError("plane fit: points are collinear")
@@ -158,15 +162,7 @@ def fit_line_2d_lsq(xy: np.ndarray, weights: np.ndarray | None = None) -> tuple[
     p = np.asarray(xy, dtype=float).reshape(-1, 2)
     if p.shape[0] < 2:
         raise FitError(f"line fit needs >= 2 points, got {p.shape[0]}")
-    if weights is None:
-        c = p.mean(axis=0)
-        q = p - c
-        S = q.T @ q
-    else:
-        w = np.asarray(weights, dtype=float).ravel()
-        c = (w[:, None] * p).sum(axis=0) / w.sum()
-        q = p - c
-        S = (w[:, None] * q).T @ q
+    c, S = _scatter(p, weights)
     evals, evecs = np.linalg.eigh(S)
     if evals[1] <= 1e-18:
         raise FitError("line fit: all points coincide")

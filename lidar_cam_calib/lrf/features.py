@@ -285,6 +285,16 @@ def extract_scan_features(frame, cfg: FeatureConfig | None = None) -> ScanFeatur
     return ScanFeatures(corners, cov, faces, lines, all_xy, pts, float(rms), ends)
 
 
+def _fold_corners(lines) -> np.ndarray | None:
+    """F, G, H (3,2): intersections base/FG, FG/GH, GH/base; None if two
+    segments are nearly parallel (no fold)."""
+    try:
+        return np.stack([intersect_lines_2d(*lines[a], *lines[b], min_angle_rad=np.radians(5))
+                         for a, b in ((0, 1), (1, 2), (2, 0))])
+    except FitError:
+        return None
+
+
 def _refine_fold(pts: np.ndarray, brk, cfg: FeatureConfig):
     """Refit the three lines on trimmed inliers; corners and checks.
 
@@ -296,14 +306,10 @@ def _refine_fold(pts: np.ndarray, brk, cfg: FeatureConfig):
     lines = []
     for s in segs:
         lines.append(fit_line_2d_lsq(s))
-    try:
-        F = intersect_lines_2d(*lines[0], *lines[1], min_angle_rad=np.radians(5))
-        G = intersect_lines_2d(*lines[1], *lines[2], min_angle_rad=np.radians(5))
-        H = intersect_lines_2d(*lines[2], *lines[0], min_angle_rad=np.radians(5))
-    except FitError:
+    corners = _fold_corners(lines)
+    if corners is None:
         return "segments nearly parallel: no fold"
     for _ in range(2):
-        corners = np.stack([F, G, H])
         new_faces = []
         for fi, s in enumerate(segs):
             p, u = lines[fi]
@@ -317,23 +323,16 @@ def _refine_fold(pts: np.ndarray, brk, cfg: FeatureConfig):
                 return f"only {int(keep.sum())} laser points on the {('base', 'ABC', 'ACD')[fi]} segment"
             new_faces.append(s[keep])
             lines[fi] = fit_line_2d_lsq(s[keep])
-        try:
-            F = intersect_lines_2d(*lines[0], *lines[1], min_angle_rad=np.radians(5))
-            G = intersect_lines_2d(*lines[1], *lines[2], min_angle_rad=np.radians(5))
-            H = intersect_lines_2d(*lines[2], *lines[0], min_angle_rad=np.radians(5))
-        except FitError:
+        corners = _fold_corners(lines)
+        if corners is None:
             return "segments nearly parallel: no fold"
     faces = new_faces
-    corners = np.stack([F, G, H])
+    F, G, H = corners
     depth = abs(float(line_2d_distances(G[None], *lines[0])[0]))
     if depth < cfg.min_fold_depth_m:
         return f"fold depth {depth * 1000:.0f} mm too small (flat object, only 1 line)"
     if np.linalg.norm(H - F) > 1.2 * cfg.board.width_m:
         return f"F-H distance {np.linalg.norm(H - F):.2f} m larger than the board"
-    # the apex must stick out towards the sensor (G closer than the base line)
-    n0 = np.array([-lines[0][1][1], lines[0][1][0]])
-    if np.sign(n0 @ G - n0 @ lines[0][0]) == np.sign(-(n0 @ lines[0][0])) and False:
-        pass
     cov = np.stack([
         corner_covariance(lines[0], faces[0], lines[1], faces[1], sig, F),
         corner_covariance(lines[1], faces[1], lines[2], faces[2], sig, G),
