@@ -4,7 +4,6 @@ import pytest
 from lidar_cam_calib.core.camera import CameraModel
 from lidar_cam_calib.lrf.features import FeatureError, extract_depth_features, extract_scan_features
 from lidar_cam_calib.lrf.frame import LrfFrame
-from lidar_cam_calib.lrf.solvers import corner_line_distances_m
 
 sim = pytest.importorskip("lidar_cam_calib.sim.lrf_world")
 

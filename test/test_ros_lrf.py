@@ -201,9 +201,12 @@ class LiveNode:
         self.spin_until(fut.done, 30, "service response")
         return fut.result()
 
-    def settle(self, n_status_before):
-        """Wait until the node has processed what we published (a status follows each rejection)."""
-        self.spin_for(0.4)
+    def publish_and_capture(self, scan, img):
+        """Publish a scan + depth pair, let the node take them, call ~/capture."""
+        self.pub_scan.publish(scan)
+        self.pub_depth.publish(img)
+        self.spin_for(0.5)
+        return self.call(self.cli_capture)
 
     def read_log(self):
         self.log.flush()
@@ -277,10 +280,7 @@ def test_live_node_bad_input_services_and_outputs(tmp_path, domain_id, sim_run):
         bad[::3] = np.nan
         bad[1::3] = 0.0
         scan, img, _ = messages_for(obs[0], 11.0, f, scan_ranges=bad, depth=np.zeros_like(obs[0].depth_m))
-        live.pub_scan.publish(scan)
-        live.pub_depth.publish(img)
-        live.spin_for(0.5)
-        r = live.call(live.cli_capture)
+        r = live.publish_and_capture(scan, img)
         assert not r.success and re.search(r"scan|depth", r.message), r.message
 
         # 4. wrong depth encoding
@@ -297,24 +297,15 @@ def test_live_node_bad_input_services_and_outputs(tmp_path, domain_id, sim_run):
         ang = obs[0].scan_angle_min_rad + obs[0].scan_angle_increment_rad * np.arange(part.size)
         part[ang > np.median(ang[np.isfinite(part) & (np.abs(ang) < 0.6)])] = np.inf
         scan, img, _ = messages_for(obs[0], 13.0, f, scan_ranges=part)
-        live.pub_scan.publish(scan)
-        live.pub_depth.publish(img)
-        live.spin_for(0.5)
-        r = live.call(live.cli_capture)
+        r = live.publish_and_capture(scan, img)
         assert not r.success and "scan" in r.message, r.message
 
         # 6. a good observation is accepted; the same pose again is refused
         scan, img, _ = messages_for(obs[0], 14.0, f)
-        live.pub_scan.publish(scan)
-        live.pub_depth.publish(img)
-        live.spin_for(0.5)
-        r = live.call(live.cli_capture)
+        r = live.publish_and_capture(scan, img)
         assert r.success, r.message
         scan, img, _ = messages_for(obs[0], 15.0, f)
-        live.pub_scan.publish(scan)
-        live.pub_depth.publish(img)
-        live.spin_for(0.5)
-        r = live.call(live.cli_capture)
+        r = live.publish_and_capture(scan, img)
         assert not r.success and "similar" in r.message, r.message
 
         # 7. stamps out of order are dropped with a reason
@@ -326,10 +317,7 @@ def test_live_node_bad_input_services_and_outputs(tmp_path, domain_id, sim_run):
         # 8. second and third poses: the node fits and publishes
         for i, t in ((1, 20.0), (2, 25.0)):
             scan, img, _ = messages_for(obs[i], t, f)
-            live.pub_scan.publish(scan)
-            live.pub_depth.publish(img)
-            live.spin_for(0.5)
-            r = live.call(live.cli_capture)
+            r = live.publish_and_capture(scan, img)
             assert r.success, r.message
         assert "published" in r.message
         live.spin_until(lambda: len(live.transforms) > 0, 10, "~/transform")

@@ -632,7 +632,6 @@ def _refine_board(triple, cands, pts, pix, sig, cfg, cam) -> DepthFeatures:
     box = np.all((pts >= lo) & (pts <= hi), axis=1)
     bidx = np.nonzero(box)[0]
     P = pts[bidx]
-    S = sig[bidx]
     labels = None
     for _ in range(cfg.depth_refit_iterations):
         D, Sp = _plane_sigmas(P, planes, cfg)

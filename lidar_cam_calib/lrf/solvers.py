@@ -343,7 +343,6 @@ class OursOptions:
     corner_weight: float = 0.0           # > 0 adds corner-on-line residuals (same data: counted twice)
     loss: str = "soft_l1"
     f_scale: float = 3.0                 # robust-loss scale in sigmas
-    max_points_per_face: int = 400       # laser points per face and observation (evenly subsampled)
     scale_covariance: bool = True        # multiply by max(1, s^2) (s^2 = posterior variance factor)
     target_sigma_deg: float = 0.1
     target_sigma_mm: float = 2.0
@@ -368,7 +367,7 @@ class _Problem:
     def __init__(self, obs: Sequence[LrfObservation], opt: OursOptions):
         self.opt = opt
         self.obs = list(obs)
-        Q, N, D, LV, FACE = [], [], [], [], []
+        Q, N, LV, FACE = [], [], [], []
         for k, o in enumerate(self.obs):
             sig = opt.laser_sigma_m if opt.laser_sigma_m is not None else o.laser_sigma_m
             for f in range(3):
@@ -555,21 +554,17 @@ def solve_ours(observations: Sequence[LrfObservation], T_init: np.ndarray | None
                options: OursOptions | None = None) -> OursSolution:
     """Our solver: robust weighted SE(3) least squares.
 
-    Residuals (all whitened to unit a-priori variance):
-    * every laser inlier point of a face -> signed distance to the camera
-      plane of that face (base points to plane 1, FG to plane 2, GH to plane
-      3); sigma^2 = (laser range sigma * cos(beam, plane normal))^2 + floor^2 +
-      n_face * var(plane offset at the point); the plane-offset variance comes
-      from the plane fit statistics and is multiplied by the face's point
-      count because it is shared by all of them;
-    * corners F, G, H -> the camera lines AB, AC, AD, 2 perpendicular
-      components each, whitened with the corner covariance (scaled by
-      ``corner_weight``; they are largely redundant with the point terms and
-      mainly help when a face has few points).
+    Residuals (all whitened to unit a-priori variance), see :class:`_Problem`:
+    * every laser segment on a face (base, FG, GH) must lie in the camera's
+      plane of that face (base, ABC, ACD): two residuals per face and
+      observation, from the segment's weighted line, whitened with the laser
+      line and plane-fit covariances together;
+    * optionally (``corner_weight`` > 0, default off) corners F, G, H -> the
+      camera lines AB, AC, AD; they reuse the same lines and planes.
 
     Start: ``T_init`` or the paper solution projected to SO(3). Solved with
     scipy ``least_squares`` (soft-L1 loss, rotation-vector perturbation on
-    the right). Weights are recomputed once at the first solution and the
+    the right). Whitening is recomputed once at the first solution and the
     problem solved again. Covariance: ``(J^T J)^-1`` of the whitened residuals
     at the solution (a-priori noise model), multiplied by the posterior
     variance factor s^2 when s^2 > 1 (``scale_covariance``)."""

@@ -128,7 +128,7 @@ class LrfCalibNode(CalibNodeBase):
         return self._capture(auto=False)
 
     def on_recalibrate(self) -> tuple[bool, str]:
-        n = len(self.calib.observations) if hasattr(self.calib, "observations") else 0
+        n = len(self.calib.observations)
         self.calib.reset()
         self.latest_pair = None
         self.last_reason = ""
@@ -168,7 +168,7 @@ class LrfCalibNode(CalibNodeBase):
             return False, verdict.reason
         self.latest_pair = None  # never reuse a pair for a second observation
         self.last_reason = ""
-        n = self._n_obs()
+        n = len(self.calib.observations)
         note = f"observation {n} accepted" + (" (automatic)" if auto else "")
         if self.calib.ready():
             note += "; " + self._fit_and_publish(frame, scan.header.stamp)
@@ -191,10 +191,6 @@ class LrfCalibNode(CalibNodeBase):
             self.get_logger().warning(f"overlay failed: {e}")
         r, t = result.sigma()
         return f"published: sigma {r:.3f} deg / {t:.2f} mm; {file_note}"
-
-    def _n_obs(self) -> int:
-        st = self.calib.status()
-        return int(st.get("observations", 0))
 
     def status_dict(self) -> dict:
         d = super().status_dict()

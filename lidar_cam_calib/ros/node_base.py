@@ -27,7 +27,6 @@ from typing import Any, Callable
 import numpy as np
 import rclpy
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -358,4 +357,4 @@ def run_node(node_cls: type, args: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["CalibNodeBase", "LATCHED", "input_qos", "run_node", "stamp_to_s", "Parameter"]
+__all__ = ["CalibNodeBase", "LATCHED", "input_qos", "run_node", "stamp_to_s"]
