@@ -102,7 +102,7 @@ def _default_scenario_path(method: str) -> str:
 
 def _cmd_bench(a: argparse.Namespace, rest: list[str]) -> int:
     if a.what == "lrf":
-        from .lrf.bench import main as bench_main
+        from .bench.lrf import main as bench_main
 
         return int(bench_main(rest) or 0)
     if a.what == "decode":

@@ -4,7 +4,7 @@ import pytest
 from lidar_cam_calib.core.camera import CameraModel
 from lidar_cam_calib.core.geometry import pose_errors
 from lidar_cam_calib.lrf import calibrator as C
-from lidar_cam_calib.lrf.bench import synthetic_observations
+from lidar_cam_calib.bench.lrf import synthetic_observations
 from lidar_cam_calib.lrf.frame import LrfFrame
 
 

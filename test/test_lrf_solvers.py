@@ -1,7 +1,7 @@
 import numpy as np
 
 from lidar_cam_calib.core.geometry import pose_errors
-from lidar_cam_calib.lrf.bench import synthetic_observations
+from lidar_cam_calib.bench.lrf import synthetic_observations
 from lidar_cam_calib.lrf.solvers import (paper_adaptive, point_to_line_error_m, resolve_assignment,
                                          solve_ours, solve_paper)
 

@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import CalibError
 
-class FitError(ValueError):
+
+class FitError(CalibError, ValueError):
     """A fit could not be made; ``str(err)`` says why."""
 
 

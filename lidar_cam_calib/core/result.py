@@ -235,3 +235,73 @@ def save_if_better(result: CalibrationResult, path: str, force: bool = False) ->
                        f"(sigma {ro:.3f} deg / {to:.2f} mm vs new {rn:.3f} deg / {tn:.2f} mm)")
     write_atomic(path, result.to_yaml(), keep_bak=True)
     return True, f"wrote {path}"
+
+
+@dataclasses.dataclass
+class CalibrationSet:
+    """The results of one fit of one method: one :class:`CalibrationResult`
+    per child frame (the board method's cameras), plus what relates them.
+
+    A set with one result under the key ``""`` is a single calibration and
+    its YAML is exactly :meth:`CalibrationResult.to_yaml`'s; otherwise the
+    YAML holds ``cameras: {name: <single-result fields>}``, ``extras`` (e.g.
+    ``camera_to_camera``) and ``refused: {name: reason}`` for cameras that
+    were not calibrated."""
+    method: str
+    results: dict
+    extras: dict = dataclasses.field(default_factory=dict)
+    refused: dict = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def single(cls, result: CalibrationResult) -> "CalibrationSet":
+        return cls(result.method, {"": result})
+
+    @property
+    def is_single(self) -> bool:
+        return list(self.results) == [""]
+
+    def frame_pairs(self) -> dict:
+        """name -> (parent_frame, child_frame)."""
+        return {k: (r.parent_frame, r.child_frame) for k, r in self.results.items()}
+
+    def to_dict(self) -> dict[str, Any]:
+        if self.is_single and not self.extras and not self.refused:
+            return self.results[""].to_dict()
+        return {"schema_version": SCHEMA_VERSION, "method": self.method,
+                "cameras": {k: r.to_dict() for k, r in self.results.items()},
+                "extras": _plain(self.extras), "refused": dict(self.refused)}
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None, width=120)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "CalibrationSet":
+        if "cameras" in d:
+            res = {str(k): CalibrationResult.from_dict(v) for k, v in (d.get("cameras") or {}).items()}
+            return cls(d.get("method", ""), res, dict(d.get("extras") or {}), dict(d.get("refused") or {}))
+        return cls.single(CalibrationResult.from_dict(d))
+
+    @classmethod
+    def from_yaml(cls, text: str) -> "CalibrationSet":
+        try:
+            d = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise ResultFileError(f"result YAML does not parse: {e}") from e
+        if not isinstance(d, dict):
+            raise ResultFileError("result YAML is not a mapping")
+        try:
+            return cls.from_dict(d)
+        except (KeyError, ValueError, TypeError) as e:
+            raise ResultFileError(f"result YAML is incomplete: {e}") from e
+
+    @classmethod
+    def load(cls, path: str) -> "CalibrationSet":
+        try:
+            with open(path, "r", encoding="utf-8") as f:
+                text = f.read()
+        except OSError as e:
+            raise ResultFileError(f"cannot read calibration result {path!r}: {e.strerror or e}") from e
+        try:
+            return cls.from_yaml(text)
+        except ResultFileError as e:
+            raise ResultFileError(f"cannot read calibration result {path!r}: {e}") from e

@@ -37,10 +37,11 @@ import numpy as np
 from ..core.fitting import (FitError, fit_line_2d_lsq, fit_plane_lsq, intersect_lines_2d,
                             intersect_planes, intersect_three_planes, line_2d_distances,
                             ransac_plane)
+from ..core.errors import CalibError
 from .solvers import LrfObservation, PlaneStats
 
 
-class FeatureError(RuntimeError):
+class FeatureError(CalibError):
     """Feature extraction failed; ``str(err)`` is the reason shown to the user."""
 
 

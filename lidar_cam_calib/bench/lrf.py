@@ -21,9 +21,9 @@ import time
 import numpy as np
 
 from ..core.geometry import R_BODY_OPTICAL, R_from_rpy, inv_T, make_T, pose_errors
-from .features import (BoardModel, FeatureConfig, corner_covariance, make_observation)
+from ..lrf.features import (BoardModel, FeatureConfig, corner_covariance, make_observation)
 from ..core.fitting import fit_line_2d_lsq, fit_plane_lsq, intersect_lines_2d
-from .solvers import (LrfObservation, OursOptions, PlaneStats, point_to_line_error_m,
+from ..lrf.solvers import (LrfObservation, OursOptions, PlaneStats, point_to_line_error_m,
                       reject_outlier_observations, resolve_assignment, solve_ours, solve_paper)
 
 
@@ -216,8 +216,8 @@ def _strip(d: dict) -> dict:
 def _sim_observations(n: int, seed: int, scenario=None, right: bool = False, cfg=None):
     from ..sim.lrf_world import simulate
     from ..sim.scenario import load_scenario
-    from .features import FeatureError, extract_depth_features, extract_scan_features
-    from .frame import LrfFrame
+    from ..lrf.features import FeatureError, extract_depth_features, extract_scan_features
+    from ..lrf.frame import LrfFrame
     sc = load_scenario(scenario)
     sc.poses.n_poses = max(n, 2)
     run = simulate(sc, np.random.default_rng(seed))
