@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from lidar_cam_calib.core.geometry import inv_T, make_T, R_from_quat, R_from_rpy
-from lidar_cam_calib.core.result import CalibrationResult, ResultFileError, save_if_better, write_atomic
+from lidar_cam_calib.core.result import (CalibrationResult, CalibrationSet, ResultFileError, check_output_path,
+                                         write_atomic)
 
 
 def make_result(sigma_rad=1e-3, sigma_m=1e-3):
@@ -46,22 +47,48 @@ def test_sigma_from_covariance():
     assert rs == pytest.approx(0.1) and ts == pytest.approx(2.0)
 
 
-def test_save_if_better_keeps_better_and_bak(tmp_path):
+def test_is_better_than_compares_both_sigmas():
+    good, worse, better = make_result(1e-3, 1e-3), make_result(1e-2, 1e-2), make_result(5e-4, 5e-4)
+    assert good.is_better_than(worse) and not worse.is_better_than(good)
+    assert better.is_better_than(good) and good.is_better_than(None)
+    assert not make_result(5e-4, 2e-3).is_better_than(good)   # one axis worse is worse
+
+
+def test_write_atomic_keeps_bak_and_mode_follows_umask(tmp_path):
     path = str(tmp_path / "sub" / "calib.yaml")
-    good = make_result(1e-3, 1e-3)
-    worse = make_result(1e-2, 1e-2)
-    written, _ = save_if_better(good, path)
-    assert written and os.path.exists(path)
-    written, why = save_if_better(worse, path)
-    assert not written and "better" in why
-    assert CalibrationResult.load(path).sigma() == pytest.approx(good.sigma())
-    better = make_result(5e-4, 5e-4)
-    written, _ = save_if_better(better, path)
-    assert written and os.path.exists(path + ".bak")
-    assert CalibrationResult.load(path + ".bak").sigma() == pytest.approx(good.sigma())
-    # force overrides the comparison
-    written, _ = save_if_better(worse, path, force=True)
-    assert written
+    old = os.umask(0o027)
+    try:
+        write_atomic(path, "a: 1\n")
+        write_atomic(path, "a: 2\n")
+    finally:
+        os.umask(old)
+    assert open(path).read() == "a: 2\n" and open(path + ".bak").read() == "a: 1\n"
+    assert stat.S_IMODE(os.stat(path).st_mode) == 0o640
+
+
+@pytest.mark.parametrize("kind", ["dir", "proc", "dev"])
+def test_output_path_must_be_a_regular_file(tmp_path, kind):
+    target = {"dir": str(tmp_path), "proc": "/proc/self/status", "dev": "/dev/null"}[kind]
+    with pytest.raises(ResultFileError):
+        check_output_path(target)
+    with pytest.raises(ResultFileError):
+        write_atomic(target, "x")
+    assert os.path.isdir(str(tmp_path)) and not os.path.exists(str(tmp_path) + ".bak")
+
+
+def test_calibration_set_round_trip_single_and_multi():
+    a, b = make_result(1e-3, 1e-3), make_result(2e-3, 1e-3)
+    single = CalibrationSet.single(a)
+    assert single.to_yaml() == a.to_yaml()
+    back = CalibrationSet.from_yaml(single.to_yaml())
+    assert back.is_single and back.results[""].sigma() == pytest.approx(a.sigma())
+    b.child_frame = "cam_right_optical_frame"
+    multi = CalibrationSet("board", {"left": a, "right": b}, extras={"camera_to_camera": {"left->right": np.eye(4)}},
+                           refused={"rear": "never saw the board"})
+    m2 = CalibrationSet.from_yaml(multi.to_yaml())
+    assert set(m2.results) == {"left", "right"} and m2.refused == {"rear": "never saw the board"}
+    assert m2.frame_pairs()["right"] == (b.parent_frame, "cam_right_optical_frame")
+    assert m2.extras["camera_to_camera"]["left->right"] == np.eye(4).tolist()
 
 
 def test_unwritable_path_is_a_clear_error_and_keeps_old(tmp_path):
@@ -69,7 +96,7 @@ def test_unwritable_path_is_a_clear_error_and_keeps_old(tmp_path):
         # root ignores permissions: use a path under a regular file instead
         blocker = tmp_path / "file"
         blocker.write_text("x")
-        with pytest.raises(ResultFileError, match="cannot write result"):
+        with pytest.raises(ResultFileError, match="is not a directory"):
             write_atomic(str(blocker / "calib.yaml"), "a: 1\n")
         return
     d = tmp_path / "ro"

@@ -6,7 +6,8 @@ import types
 import numpy as np
 import pytest
 
-from lidar_cam_calib.io.sync import ApproxTimeSync, to_seconds
+from lidar_cam_calib.io.convert import stamp_to_s as to_seconds
+from lidar_cam_calib.io.sync import ApproxTimeSync
 
 
 def _feed(sync, events):

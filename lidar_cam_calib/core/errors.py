@@ -13,7 +13,7 @@ class CalibError(RuntimeError):
     """Base of every expected failure; the message is for the user."""
 
 
-class InputError(CalibError):
+class InputError(CalibError, ValueError):
     """A message or file that cannot be used (wrong encoding, NaN cloud, ...)."""
 
 

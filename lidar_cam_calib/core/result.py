@@ -74,15 +74,11 @@ class CalibrationResult:
         return (r if math.isfinite(r) else math.inf, t if math.isfinite(t) else math.inf)
 
     def is_better_than(self, other: "CalibrationResult | None") -> bool:
-        """True when this result should replace ``other`` on disk.
-
-        A result replaces another only when both its rotation and translation
-        uncertainties are no worse (within 1 %), or when the other is for a
-        different frame pair / method (then it is not comparable and the
-        caller decides)."""
+        """True when this result is no worse than ``other``: both its rotation
+        and translation uncertainties within 1 % of the other's or smaller.
+        Whether results for different frame pairs or methods may replace each
+        other is the node's policy, not decided here."""
         if other is None:
-            return True
-        if (other.parent_frame, other.child_frame) != (self.parent_frame, self.child_frame):
             return True
         r, t = self.quality_key()
         ro, to = other.quality_key()
@@ -114,7 +110,7 @@ class CalibrationResult:
             "covariance_rot_first": [[_f(v) for v in row] for row in np.asarray(self.covariance, dtype=float)],
             "sigma_rotation_deg": _f(rs),
             "sigma_translation_mm": _f(ts),
-            "metrics": {k: _plain(v) for k, v in self.metrics.items()},
+            "metrics": {k: to_plain(v) for k, v in self.metrics.items()},
             "observations_used": int(self.observations_used),
             "input_topics": dict(self.input_topics),
             "stamps_s": [float(s) for s in self.stamps],
@@ -163,26 +159,68 @@ def _f(v: float) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def _plain(v: Any) -> Any:
+def to_plain(v: Any) -> Any:
+    """Plain YAML/JSON values: numpy scalars and arrays to Python, NaN/inf to None."""
     if isinstance(v, (np.floating, float)):
         return _f(v)
     if isinstance(v, (np.integer,)):
         return int(v)
+    if isinstance(v, np.bool_):
+        return bool(v)
     if isinstance(v, np.ndarray):
-        return [_plain(x) for x in v.tolist()]
+        return [to_plain(x) for x in v.tolist()]
     if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
+        return [to_plain(x) for x in v]
     if isinstance(v, dict):
-        return {str(k): _plain(x) for k, x in v.items()}
+        return {str(k): to_plain(x) for k, x in v.items()}
     return v
+
+
+_SPECIAL_ROOTS = ("/proc", "/sys", "/dev")
+
+
+def _file_mode() -> int:
+    """0666 under the process umask (0644 under umask 022), as any file."""
+    try:
+        with open("/proc/self/status", "r", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def check_output_path(path: str) -> str:
+    """Absolute path for a result file, or :class:`ResultFileError` when it
+    cannot be one: an existing directory, device or other non-regular file,
+    anything under /proc, /sys or /dev, or a parent that is not a directory.
+    Nothing is created or touched."""
+    p = os.path.abspath(os.path.expanduser(path))
+    real = os.path.realpath(p)
+    if any(real == r or real.startswith(r + "/") for r in _SPECIAL_ROOTS):
+        raise ResultFileError(f"{p} is under /{real.split('/')[1]}: not a place for a result file")
+    if os.path.lexists(p) and not os.path.isfile(p):
+        kind = "a directory" if os.path.isdir(p) else "not a regular file"
+        raise ResultFileError(f"{p} is {kind}: give the path of a YAML file")
+    parent = os.path.dirname(p)
+    while parent and not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    if parent and not os.path.isdir(parent):
+        raise ResultFileError(f"{parent} is not a directory, so {p} cannot be created")
+    return p
 
 
 def write_atomic(path: str, text: str, keep_bak: bool = True) -> None:
     """Write ``text`` to ``path`` atomically: temp file in the same directory,
-    fsync, rename. The previous file, if any, is kept as ``path + '.bak'``.
-    Raises :class:`ResultFileError` with a clear message on failure; the old
-    file is untouched in that case."""
-    path = os.path.abspath(os.path.expanduser(path))
+    fsync, rename, with the mode any new file gets under the umask. The
+    previous file, if any, is kept as ``path + '.bak'``. Raises
+    :class:`ResultFileError` with a clear message on failure; the old file is
+    untouched in that case, and nothing is written where
+    :func:`check_output_path` refuses."""
+    path = check_output_path(path)
     d = os.path.dirname(path)
     try:
         os.makedirs(d, exist_ok=True)
@@ -190,16 +228,13 @@ def write_atomic(path: str, text: str, keep_bak: bool = True) -> None:
     except OSError as e:
         raise ResultFileError(f"cannot write result to {path!r}: {e.strerror or e}") from e
     try:
+        os.fchmod(fd, _file_mode())
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
-        if keep_bak and os.path.exists(path):
-            bak = path + ".bak"
-            try:
-                os.replace(path, bak)
-            except OSError:
-                pass
+        if keep_bak and os.path.isfile(path):
+            os.replace(path, path + ".bak")
         os.replace(tmp, path)
         try:
             dfd = os.open(d, os.O_RDONLY)
@@ -215,26 +250,6 @@ def write_atomic(path: str, text: str, keep_bak: bool = True) -> None:
         except OSError:
             pass
         raise ResultFileError(f"cannot write result to {path!r}: {e.strerror or e}") from e
-
-
-def save_if_better(result: CalibrationResult, path: str, force: bool = False) -> tuple[bool, str]:
-    """Write ``result`` to ``path`` unless the file there holds a better one.
-
-    Returns ``(written, reason)``. An unreadable existing file is kept as
-    ``.bak`` and replaced. Raises :class:`ResultFileError` if writing fails."""
-    old = None
-    if os.path.exists(path) and not force:
-        try:
-            old = CalibrationResult.load(path)
-        except ResultFileError:
-            old = None
-    if old is not None and not result.is_better_than(old):
-        ro, to = old.sigma()
-        rn, tn = result.sigma()
-        return False, (f"kept {path}: it holds a better calibration "
-                       f"(sigma {ro:.3f} deg / {to:.2f} mm vs new {rn:.3f} deg / {tn:.2f} mm)")
-    write_atomic(path, result.to_yaml(), keep_bak=True)
-    return True, f"wrote {path}"
 
 
 @dataclasses.dataclass
@@ -269,7 +284,7 @@ class CalibrationSet:
             return self.results[""].to_dict()
         return {"schema_version": SCHEMA_VERSION, "method": self.method,
                 "cameras": {k: r.to_dict() for k, r in self.results.items()},
-                "extras": _plain(self.extras), "refused": dict(self.refused)}
+                "extras": to_plain(self.extras), "refused": dict(self.refused)}
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None, width=120)

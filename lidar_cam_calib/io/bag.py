@@ -29,7 +29,7 @@ import os
 from pathlib import Path
 from typing import Any, Iterator, NamedTuple
 
-__all__ = ["BagError", "BagRecord", "BagWriter", "read_bag", "bag_topics", "default_qos"]
+__all__ = ["BagError", "BagRecord", "BagWriter", "read_bag", "bag_topics", "bag_message_counts", "default_qos"]
 
 
 class BagError(RuntimeError):
@@ -311,4 +311,31 @@ def bag_topics(path: str | os.PathLike) -> dict[str, str]:
         for ch in summary.channels.values():
             schema = summary.schemas.get(ch.schema_id)
             out[ch.topic] = schema.name if schema is not None else ""
+    return out
+
+
+def bag_message_counts(path: str | os.PathLike) -> dict[str, int]:
+    """Topic -> number of messages from the MCAP summary statistics; empty
+    when the bag has none (truncated, sqlite3): a progress display only."""
+    try:
+        kind, files = _resolve(path)
+    except BagError:
+        return {}
+    if kind != "mcap":
+        return {}
+    from mcap.reader import make_reader
+
+    out: dict[str, int] = {}
+    for fpath in files:
+        try:
+            with open(fpath, "rb") as f:
+                summary = make_reader(f).get_summary()
+        except Exception:  # noqa: BLE001 - no summary: no counts
+            return {}
+        if summary is None or summary.statistics is None:
+            return {}
+        for cid, n in summary.statistics.channel_message_counts.items():
+            ch = summary.channels.get(cid)
+            if ch is not None:
+                out[ch.topic] = out.get(ch.topic, 0) + int(n)
     return out

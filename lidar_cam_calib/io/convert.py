@@ -12,9 +12,12 @@ metres; times are seconds; angles radians.
 from __future__ import annotations
 
 import array
+import math
 from typing import Any
 
 import numpy as np
+
+from ..core.errors import InputError
 
 __all__ = [
     "POINTFIELD_DTYPES",
@@ -29,6 +32,7 @@ __all__ = [
     "laserscan_to_points",
     "make_laserscan",
     "stamp_to_s",
+    "validate_laserscan",
 ]
 
 # sensor_msgs/PointField datatype constants -> (numpy kind code, size in bytes)
@@ -50,8 +54,14 @@ _TIME_NAMES = ("t", "time", "offset_time", "timestamp")
 
 
 def stamp_to_s(stamp: Any) -> float:
-    """Seconds (float64) of a builtin_interfaces Time, duck-typed (``sec``, ``nanosec``)."""
-    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
+    """Seconds (float64) of a builtin_interfaces/Time (``sec``, ``nanosec``),
+    duck-typed; a Header (with ``.stamp``) or a plain number of seconds too.
+    The one stamp conversion of the package (nodes, sync, bags)."""
+    if hasattr(stamp, "stamp") and not hasattr(stamp, "sec"):
+        stamp = stamp.stamp
+    if hasattr(stamp, "sec") and hasattr(stamp, "nanosec"):
+        return float(stamp.sec) + float(stamp.nanosec) * 1e-9
+    return float(stamp)
 
 
 def _stamp_ns(stamp: Any) -> int:
@@ -117,7 +127,7 @@ def pointcloud2_to_arrays(msg: Any, keep_nan: bool = False) -> dict[str, np.ndar
     fields = _field_map(msg)
     missing = [c for c in ("x", "y", "z") if c not in fields]
     if missing:
-        raise ValueError(
+        raise InputError(
             f"PointCloud2 has no {'/'.join(missing)} field(s); fields present: {sorted(fields)}"
         )
     height = int(msg.height)
@@ -137,10 +147,10 @@ def pointcloud2_to_arrays(msg: Any, keep_nan: bool = False) -> dict[str, np.ndar
     for key, fname in wanted.items():
         off, dt, _count = fields[fname]
         if dt not in POINTFIELD_DTYPES:
-            raise ValueError(f"PointCloud2 field {fname!r} has unknown datatype {dt}")
+            raise InputError(f"PointCloud2 field {fname!r} has unknown datatype {dt}")
         code, size = POINTFIELD_DTYPES[dt]
         if off < 0 or off + size > point_step:
-            raise ValueError(
+            raise InputError(
                 f"PointCloud2 field {fname!r} (offset {off}, {size} bytes) does not fit point_step {point_step}"
             )
         names.append(key)
@@ -162,11 +172,11 @@ def pointcloud2_to_arrays(msg: Any, keep_nan: bool = False) -> dict[str, np.ndar
         return out
 
     if point_step <= 0 or row_step < width * point_step:
-        raise ValueError(f"PointCloud2 has inconsistent point_step {point_step} / row_step {row_step} for width {width}")
+        raise InputError(f"PointCloud2 has inconsistent point_step {point_step} / row_step {row_step} for width {width}")
     buf = _as_bytes_buffer(msg.data)
     need = (height - 1) * row_step + width * point_step
     if buf.size < need:
-        raise ValueError(f"PointCloud2 data has {buf.size} bytes, layout needs {need}")
+        raise InputError(f"PointCloud2 data has {buf.size} bytes, layout needs {need}")
 
     dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
     if row_step == width * point_step:
@@ -294,7 +304,7 @@ def arrays_to_pointcloud2(
         extras["time"] = np.asarray(time_s, dtype=np.float32).reshape(-1)
     for k, v in extras.items():
         if v.shape[0] != n:
-            raise ValueError(f"{k} has {v.shape[0]} values for {n} points")
+            raise InputError(f"{k} has {v.shape[0]} values for {n} points")
     point_step = off
     dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
     rec = np.zeros(n, dtype=dtype)
@@ -334,8 +344,8 @@ IMAGE_ENCODINGS = {
 }
 
 
-def _unknown_encoding(enc: str) -> ValueError:
-    return ValueError(f"unsupported image encoding {enc!r}; supported: {', '.join(IMAGE_ENCODINGS)}")
+def _unknown_encoding(enc: str) -> InputError:
+    return InputError(f"unsupported image encoding {enc!r}; supported: {', '.join(IMAGE_ENCODINGS)}")
 
 
 def image_to_array(msg: Any) -> np.ndarray:
@@ -357,14 +367,14 @@ def image_to_array(msg: Any) -> np.ndarray:
     row_bytes = w * ch * elem
     step = int(msg.step) if int(msg.step) > 0 else row_bytes
     if step < row_bytes:
-        raise ValueError(f"image step {step} is smaller than width*channels*bytes = {row_bytes}")
+        raise InputError(f"image step {step} is smaller than width*channels*bytes = {row_bytes}")
     buf = _as_bytes_buffer(msg.data)
     if h == 0 or w == 0:
         shape = (h, w) if ch == 1 else (h, w, 3)
         return np.zeros(shape, dtype=np.dtype(code))
     need = (h - 1) * step + row_bytes
     if buf.size < need:
-        raise ValueError(f"image data has {buf.size} bytes, {enc} {w}x{h} with step {step} needs {need}")
+        raise InputError(f"image data has {buf.size} bytes, {enc} {w}x{h} with step {step} needs {need}")
     rows = np.lib.stride_tricks.as_strided(buf, shape=(h, row_bytes), strides=(step, 1), writeable=False)
     packed = np.array(rows, dtype=np.uint8, copy=True, order="C")  # drops row padding, owns its memory
     dt = np.dtype(code)
@@ -401,7 +411,7 @@ def depth_image_to_m(msg: Any) -> np.ndarray:
         bad = ~np.isfinite(depth) | (depth <= 0)
         depth[bad] = np.nan
         return depth
-    raise ValueError(f"depth image must be 16UC1 (mm) or 32FC1 (m), got {enc}")
+    raise InputError(f"depth image must be 16UC1 (mm) or 32FC1 (m), got {enc}")
 
 
 def array_to_image(arr: np.ndarray, encoding: str, factory: Any, header: Any) -> Any:
@@ -422,17 +432,17 @@ def array_to_image(arr: np.ndarray, encoding: str, factory: Any, header: Any) ->
         if a.ndim == 3 and a.shape[2] == 1:
             a = a[:, :, 0]
         if a.ndim != 2:
-            raise ValueError(f"{encoding} needs an HxW array, got shape {a.shape}")
+            raise InputError(f"{encoding} needs an HxW array, got shape {a.shape}")
     else:
         if a.ndim != 3 or a.shape[2] not in (3, 4):
-            raise ValueError(f"{encoding} needs an HxWx3 (BGR) or HxWx4 (BGRA) array, got shape {a.shape}")
+            raise InputError(f"{encoding} needs an HxWx3 (BGR) or HxWx4 (BGRA) array, got shape {a.shape}")
     if a.dtype != target:
         if target.kind in "iu":
             if a.dtype.kind not in "iub":
-                raise ValueError(f"{encoding} needs integer data, got {a.dtype}")
+                raise InputError(f"{encoding} needs integer data, got {a.dtype}")
             info = np.iinfo(target)
             if a.size and (a.min() < info.min or a.max() > info.max):
-                raise ValueError(f"values out of range for {encoding} ({target})")
+                raise InputError(f"values out of range for {encoding} ({target})")
         a = a.astype(target)
     if ch > 1:
         bgr = a[:, :, :3]
@@ -491,18 +501,18 @@ def camera_info_to_model(msg: Any):
 
     width, height = int(msg.width), int(msg.height)
     if width <= 0 or height <= 0:
-        raise ValueError(f"CameraInfo has image size {width}x{height}; width and height must be > 0")
+        raise InputError(f"CameraInfo has image size {width}x{height}; width and height must be > 0")
     K = np.asarray(_ci_field(msg, "k"), dtype=np.float64).reshape(-1)
     if K.size != 9:
-        raise ValueError(f"CameraInfo K must have 9 values, got {K.size}")
+        raise InputError(f"CameraInfo K must have 9 values, got {K.size}")
     K = K.reshape(3, 3)
     if not np.any(K):
-        raise ValueError(
+        raise InputError(
             "CameraInfo K is all zeros: the camera is uncalibrated; calibrate its intrinsics first "
             "(e.g. camera_calibration) or provide a calibrated camera_info"
         )
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(f"CameraInfo K has invalid focal lengths: fx={K[0, 0]}, fy={K[1, 1]}")
+        raise InputError(f"CameraInfo K has invalid focal lengths: fx={K[0, 0]}, fy={K[1, 1]}")
     D = np.asarray(_ci_field(msg, "d"), dtype=np.float64).reshape(-1)
     model = str(msg.distortion_model).strip().lower()
     model = _DIST_ALIASES.get(model, model)
@@ -516,9 +526,9 @@ def camera_info_to_model(msg: Any):
         elif D.size >= 8:
             model = "rational_polynomial"
         else:
-            raise ValueError(f"CameraInfo has empty distortion_model and {D.size} coefficients; cannot infer model")
+            raise InputError(f"CameraInfo has empty distortion_model and {D.size} coefficients; cannot infer model")
     if model not in _DIST_LEN:
-        raise ValueError(
+        raise InputError(
             f"unsupported distortion_model {msg.distortion_model!r}; supported: plumb_bob, rational_polynomial, "
             "equidistant, '' (none)"
         )
@@ -591,6 +601,25 @@ def laserscan_to_points(msg: Any) -> dict[str, np.ndarray]:
     return out
 
 
+def validate_laserscan(msg: Any) -> np.ndarray:
+    """The ranges of a LaserScan as float32, or :class:`InputError` when the
+    message contradicts itself: no ranges, a zero or non-finite increment, or
+    a ranges length that disagrees with angle_min/angle_max/angle_increment
+    (one beam either way is tolerated: drivers differ on the last beam)."""
+    r = np.asarray(msg.ranges, dtype=np.float32).reshape(-1)
+    a0, a1, inc = float(msg.angle_min), float(msg.angle_max), float(msg.angle_increment)
+    if r.size == 0:
+        raise InputError("LaserScan has no ranges")
+    if not (math.isfinite(a0) and math.isfinite(a1) and math.isfinite(inc)) or inc == 0.0:
+        raise InputError(f"LaserScan angles are not usable: angle_min {a0}, angle_max {a1}, "
+                         f"angle_increment {inc}")
+    expected = int(round((a1 - a0) / inc)) + 1
+    if abs(r.size - expected) > 1:
+        raise InputError(f"LaserScan has {r.size} ranges but angle_min {a0:.6f}, angle_max {a1:.6f} and "
+                         f"angle_increment {inc:.6g} rad give {expected} beams: the message is inconsistent, dropped")
+    return r
+
+
 def make_laserscan(
     ranges: np.ndarray,
     angle_min: float,
@@ -619,6 +648,6 @@ def make_laserscan(
     if intensities is not None:
         inten = np.asarray(intensities, dtype=np.float32).reshape(-1)
         if inten.size != r.size:
-            raise ValueError(f"intensities has {inten.size} values for {r.size} ranges")
+            raise InputError(f"intensities has {inten.size} values for {r.size} ranges")
         fields["intensities"] = inten
     return factory.make("sensor_msgs/msg/LaserScan", **fields)

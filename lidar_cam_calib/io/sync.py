@@ -27,19 +27,9 @@ from __future__ import annotations
 import bisect
 from typing import Any, Hashable
 
-__all__ = ["ApproxTimeSync", "to_seconds"]
+from .convert import stamp_to_s
 
-
-def to_seconds(stamp: Any) -> float:
-    """Seconds (float) of a builtin_interfaces/Time (``sec``, ``nanosec``), duck-typed.
-
-    A Header (with ``.stamp``) or a plain number (seconds) are accepted too.
-    """
-    if hasattr(stamp, "stamp") and not hasattr(stamp, "sec"):
-        stamp = stamp.stamp
-    if hasattr(stamp, "sec") and hasattr(stamp, "nanosec"):
-        return float(stamp.sec) + float(stamp.nanosec) * 1e-9
-    return float(stamp)
+__all__ = ["ApproxTimeSync"]
 
 
 class ApproxTimeSync:
@@ -104,7 +94,7 @@ class ApproxTimeSync:
             k = self._index[topic]
         except KeyError:
             raise ValueError(f"unknown topic {topic!r}; expected one of {self.topics}") from None
-        t = to_seconds(stamp_s)
+        t = stamp_to_s(stamp_s)
         if t <= self._floor[k]:
             self.dropped_out_of_order += 1
             return []
