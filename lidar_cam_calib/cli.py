@@ -50,7 +50,8 @@ def _print_result(name: str, r, spec, truth: dict | None) -> None:
     rpy = np.degrees(rpy_from_R(r.R))
     print(f"{head}T_{r.child_frame}_{r.parent_frame} (p_{r.child_frame} = T @ p_{r.parent_frame}), solver {r.solver}:")
     print("  " + np.array2string(r.T_child_parent, precision=5, suppress_small=True).replace("\n", "\n  "))
-    print(f"  translation [m] {t[0]:+.4f} {t[1]:+.4f} {t[2]:+.4f}   rpy [deg] {rpy[0]:+.3f} {rpy[1]:+.3f} {rpy[2]:+.3f}")
+    print(f"  translation [m] {t[0]:+.4f} {t[1]:+.4f} {t[2]:+.4f}   "
+          f"rpy [deg] {rpy[0]:+.3f} {rpy[1]:+.3f} {rpy[2]:+.3f}")
     print(f"  1-sigma: {rs:.3f} deg, {ts:.2f} mm   observations: {r.observations_used}")
     m = r.metrics
     for key, label, unit in spec.metrics:
@@ -196,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
         # everything after the benchmark's name is the benchmark's own, --help included
         benches = _benches()
         if len(argv) < 2 or argv[1].startswith("-"):
-            bench_parser = p._subparsers._group_actions[0].choices["bench"]  # noqa: SLF001 - argparse has no API
+            bench_parser = p._subparsers._group_actions[0].choices["bench"] # argparse has no API for it
             bench_parser.print_help()
             return 0 if any(x in ("-h", "--help") for x in argv[1:]) else 2
         if argv[1] not in benches:

@@ -167,7 +167,7 @@ def _rosbags_hash():
         return '(rosbags not installed: not compared)'
     try:
         return get_typestore(Stores.ROS2_JAZZY).hash_rihs01(TYPE_NAME)
-    except Exception as exc:  # older rosbags without hash_rihs01
+    except Exception as exc:  # noqa: BLE001 - older rosbags without hash_rihs01
         return f'unavailable ({exc})'
 
 

@@ -13,6 +13,8 @@ import yaml
 from conftest import ROOT
 from lidar_cam_calib.ros.env import loopback_env
 
+LRF_PARAMS = os.path.join(ROOT, "config", "lrf.yaml")
+
 
 def bag_subset(src: str, dst: str, keep) -> str:
     """Write the records of bag ``src`` for which ``keep(index, rec)`` holds to ``dst``."""
@@ -39,7 +41,7 @@ class LiveNode:
     subscriptions to its outputs, service and parameter clients."""
 
     def __init__(self, tmp_path, domain_id, extra=None, module="lidar_cam_calib.ros.lrf_node",
-                 name="lrf_calib_node", params_file=os.path.join(ROOT, "config", "lrf.yaml"), wait=True):
+                 name="lrf_calib_node", params_file=LRF_PARAMS, wait=True):
         import rclpy
         from geometry_msgs.msg import TransformStamped
         from rcl_interfaces.srv import DescribeParameters, SetParameters

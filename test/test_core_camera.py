@@ -3,7 +3,7 @@ import pytest
 
 cv2 = pytest.importorskip("cv2")
 
-from lidar_cam_calib.core.camera import CameraModel
+from lidar_cam_calib.core.camera import CameraModel  # noqa: E402 - after the cv2 skip
 
 MODELS = [
     ("plumb_bob", [-0.2, 0.05, 0.001, -0.002, 0.01]),

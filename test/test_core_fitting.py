@@ -7,9 +7,12 @@ from lidar_cam_calib.core.fitting import (FitError, fit_line_2d_lsq, fit_plane_l
 
 def test_ransac_plane_recovers_plane_with_outliers():
     rng = np.random.default_rng(0)
-    n_true = np.array([0.2, -0.3, 0.93]); n_true /= np.linalg.norm(n_true)
+    n_true = np.array([0.2, -0.3, 0.93])
+    n_true /= np.linalg.norm(n_true)
     uv = rng.uniform(-1, 1, (500, 2))
-    a = np.cross(n_true, [1, 0, 0]); a /= np.linalg.norm(a); b = np.cross(n_true, a)
+    a = np.cross(n_true, [1, 0, 0])
+    a /= np.linalg.norm(a)
+    b = np.cross(n_true, a)
     pts = uv[:, :1] * a + uv[:, 1:] * b - 2.0 * n_true + rng.normal(0, 0.002, (500, 1)) * n_true
     pts = np.vstack([pts, rng.uniform(-2, 2, (200, 3))])
     n, d, mask = ransac_plane(pts, 0.01, 200, np.random.default_rng(1), min_inliers=100)

@@ -23,8 +23,13 @@ def test_colcon_style_install_layout(tmp_path):
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "lidar_cam_calib").is_file()
     assert (share / "package.xml").is_file()
     assert (share / "config" / "lrf.yaml").is_file()
-    node = prefix / "lib" / "lidar_cam_calib" / "lrf_calib_node"
-    assert node.is_file() and os.access(node, os.X_OK)
+    from lidar_cam_calib import methods
+
+    for spec in methods.METHODS.values():   # every registered method: its node and its files
+        node = prefix / "lib" / "lidar_cam_calib" / spec.executable
+        assert node.is_file() and os.access(node, os.X_OK), spec.executable
+        assert (share / "config" / spec.params_file).is_file(), spec.params_file
+        assert (share / "config" / "scenarios" / spec.scenario).is_file(), spec.scenario
     assert (prefix / "lib" / "lidar_cam_calib" / "lidar-cam-calib").is_file()
     bag_files = list((share / "bags").rglob("*.mcap"))
     assert bag_files, "demo bag not installed under share/lidar_cam_calib/bags"
@@ -38,9 +43,11 @@ def test_package_xml_declares_run_dependencies():
 
     root = ET.parse(os.path.join(ROOT, "package.xml")).getroot()
     deps = {e.text for e in root if e.tag in ("exec_depend", "depend")}
-    for key in ("rclpy", "sensor_msgs", "geometry_msgs", "std_msgs", "std_srvs", "python3-numpy",
-                "python3-scipy", "python3-opencv", "python3-yaml"):
+    for key in ("rclpy", "rcl_interfaces", "sensor_msgs", "geometry_msgs", "std_msgs", "std_srvs", "tf2_msgs",
+                "python3-numpy", "python3-scipy", "python3-opencv", "python3-yaml"):
         assert key in deps, key
+    for unused in ("visualization_msgs", "tf2_ros"):
+        assert unused not in deps, unused
     assert root.find("export/build_type").text == "ament_python"
 
 
@@ -61,3 +68,43 @@ def test_core_imports_without_rclpy():
     )
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-3000:]
+
+
+def test_registry_entries_resolve():
+    """Every string in the method registry names code and files that exist."""
+    import importlib.util
+
+    from lidar_cam_calib import methods
+
+    for spec in methods.METHODS.values():
+        for ref in (spec.calibrator, spec.config, spec.simulate, spec.load_scenario, spec.bench):
+            module, _, attr = ref.partition(":")
+            assert importlib.util.find_spec(module) is not None, ref
+            assert hasattr(methods.load(module), attr), ref
+        assert importlib.util.find_spec(spec.node_module) is not None, spec.node
+        assert os.path.isfile(os.path.join(ROOT, "config", spec.params_file))
+        assert os.path.isfile(os.path.join(ROOT, "config", "scenarios", spec.scenario))
+        cfg = methods.load(spec.config)()
+        from lidar_cam_calib.core.calibrator import Calibrator, validate_config
+
+        validate_config(cfg)
+        assert isinstance(methods.load(spec.calibrator)(cfg), Calibrator)
+
+
+def test_every_cli_subcommand_has_its_own_help():
+    from lidar_cam_calib import methods
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "lidar_cam_calib.cli", *args], cwd=ROOT,
+                              capture_output=True, text=True, timeout=120)
+
+    top = run("--help")
+    assert top.returncode == 0 and "exit codes:" in top.stdout
+    cal = run("calibrate", "--help")
+    assert cal.returncode == 0 and "--truth" in cal.stdout and "exit codes:" in cal.stdout
+    assert "--seed" in run("simulate", "--help").stdout
+    benches = run("bench", "--help")
+    assert benches.returncode == 0 and all(n in benches.stdout for n in methods.METHODS)
+    for name in list(methods.METHODS) + list(methods.EXTRA_BENCHES):
+        r = run("bench", name, "--help")
+        assert r.returncode == 0 and f"bench {name}" in r.stdout, (name, r.stdout, r.stderr)

@@ -38,10 +38,10 @@ def test_two_streams_jitter_each_set_once():
     sync = ApproxTimeSync(["/cam", "/lidar"], slop_s=0.03)
     sets = _feed(sync, _interleave({"/cam": cam, "/lidar": lidar}))
     assert len(sets) == 50
-    for i, (c, l) in enumerate(sets):
-        assert c[0] == "/cam" and l[0] == "/lidar"  # ordered as topics
-        assert c[1] == cam[i][1] and l[1] == lidar[i][1]
-        assert abs(c[1] - l[1]) <= 0.03
+    for i, (c, li) in enumerate(sets):
+        assert c[0] == "/cam" and li[0] == "/lidar"  # ordered as topics
+        assert c[1] == cam[i][1] and li[1] == lidar[i][1]
+        assert abs(c[1] - li[1]) <= 0.03
     assert sync.emitted == 50 and sync.dropped_out_of_order == 0
 
 

@@ -12,9 +12,9 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from conftest import ROOT  # noqa: E402
-from live_node import LiveNode, lrf_messages  # noqa: E402
-from lidar_cam_calib.core.geometry import inv_T, make_T, pose_errors, R_from_quat  # noqa: E402
+from conftest import ROOT
+from live_node import LiveNode, lrf_messages
+from lidar_cam_calib.core.geometry import inv_T, make_T, pose_errors, R_from_quat
 
 
 @pytest.fixture(scope="module")

@@ -14,10 +14,10 @@ import yaml
 
 pytest.importorskip("rclpy")
 
-from conftest import DEMO_BAG, ROOT  # noqa: E402
-from live_node import LiveNode, bag_subset, run_cli  # noqa: E402
-from lidar_cam_calib.core.geometry import make_T, pose_errors  # noqa: E402
-from lidar_cam_calib.core.result import CalibrationResult  # noqa: E402
+from conftest import DEMO_BAG, ROOT
+from live_node import LiveNode, bag_subset, run_cli
+from lidar_cam_calib.core.geometry import make_T, pose_errors
+from lidar_cam_calib.core.result import CalibrationResult
 
 ERR_RE = re.compile(r"error vs truth: rotation ([0-9.]+) deg, translation ([0-9.]+) mm")
 PARAMS = os.path.join(ROOT, "config", "lrf.yaml")

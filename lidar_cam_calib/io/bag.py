@@ -212,7 +212,7 @@ def _iter_mcap_file(path: Path) -> Iterator[BagRecord]:
             summary = None
             try:
                 summary = reader.get_summary()
-            except Exception:
+            except Exception:  # noqa: BLE001 - any summary failure means: read linearly
                 summary = None  # no/invalid summary: truncated or unindexed; read linearly
             if summary is not None and summary.chunk_indexes:
                 it = reader.iter_messages(log_time_order=True)
@@ -330,7 +330,7 @@ def bag_message_counts(path: str | os.PathLike) -> dict[str, int]:
         try:
             with open(fpath, "rb") as f:
                 summary = make_reader(f).get_summary()
-        except Exception:  # noqa: BLE001 - no summary: no counts
+        except Exception:  # noqa: BLE001 - no readable summary: no counts
             return {}
         if summary is None or summary.statistics is None:
             return {}

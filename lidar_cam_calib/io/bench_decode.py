@@ -61,7 +61,7 @@ def _minor_faults() -> int:
         import resource
 
         return int(resource.getrusage(resource.RUSAGE_SELF).ru_minflt)
-    except Exception:  # pragma: no cover - non-POSIX
+    except Exception:  # noqa: BLE001 - non-POSIX: no fault counter
         return 0
 
 

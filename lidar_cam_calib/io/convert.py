@@ -172,7 +172,8 @@ def pointcloud2_to_arrays(msg: Any, keep_nan: bool = False) -> dict[str, np.ndar
         return out
 
     if point_step <= 0 or row_step < width * point_step:
-        raise InputError(f"PointCloud2 has inconsistent point_step {point_step} / row_step {row_step} for width {width}")
+        raise InputError(f"PointCloud2 has inconsistent point_step {point_step} / row_step {row_step} "
+                         f"for width {width}")
     buf = _as_bytes_buffer(msg.data)
     need = (height - 1) * row_step + width * point_step
     if buf.size < need:
@@ -290,18 +291,17 @@ def arrays_to_pointcloud2(
         pfs.append(_make_point_field(factory, nm, off, 7))
     off = 12
     extras: dict[str, np.ndarray] = {}
-    if intensity is not None:
-        names.append("intensity"); formats.append("<f4"); offsets.append(off)
-        pfs.append(_make_point_field(factory, "intensity", off, 7)); off += 4
-        extras["intensity"] = np.asarray(intensity, dtype=np.float32).reshape(-1)
-    if ring is not None:
-        names.append("ring"); formats.append("<u2"); offsets.append(off)
-        pfs.append(_make_point_field(factory, "ring", off, 4)); off += 4
-        extras["ring"] = np.asarray(ring).reshape(-1).astype(np.uint16)
-    if time_s is not None:
-        names.append("time"); formats.append("<f4"); offsets.append(off)
-        pfs.append(_make_point_field(factory, "time", off, 7)); off += 4
-        extras["time"] = np.asarray(time_s, dtype=np.float32).reshape(-1)
+    for name, values, fmt, datatype, cast in (("intensity", intensity, "<f4", 7, np.float32),
+                                              ("ring", ring, "<u2", 4, np.uint16),
+                                              ("time", time_s, "<f4", 7, np.float32)):
+        if values is None:
+            continue
+        names.append(name)
+        formats.append(fmt)
+        offsets.append(off)
+        pfs.append(_make_point_field(factory, name, off, datatype))
+        off += 4
+        extras[name] = np.asarray(values).reshape(-1).astype(cast)
     for k, v in extras.items():
         if v.shape[0] != n:
             raise InputError(f"{k} has {v.shape[0]} values for {n} points")

@@ -434,7 +434,8 @@ class CalibNodeBase(Node):
                 return (f"no input newer than the last accepted observation ({self.last_accepted_s:.3f} s) "
                         "yet: move to the next pose and wait for new data")
             if t <= self.refused_after_s:
-                return (f"the newest input ({self.refused_after_s:.3f} s) was refused ({self.last_reason or 'see log'}); "
+                return (f"the newest input ({self.refused_after_s:.3f} s) was refused "
+                        f"({self.last_reason or 'see log'}); "
                         "waiting for valid data newer than it")
         return ""
 
@@ -474,13 +475,13 @@ class CalibNodeBase(Node):
             finally:
                 self._busy = ""
                 done.set()
-                if self._stop.is_set():
-                    break
-                try:
-                    self._calib_status = to_plain(self.calib.status())
-                except Exception as e:  # noqa: BLE001 - status must not raise
-                    self._calib_status = {"status_error": str(e)}
-                self.publish_status()
+            if self._stop.is_set():
+                break
+            try:
+                self._calib_status = to_plain(self.calib.status())
+            except Exception as e:  # noqa: BLE001 - status must not raise
+                self._calib_status = {"status_error": str(e)}
+            self.publish_status()
 
     def submit_frame(self, frame: Any, stamp_s: float, auto: bool, wait: bool) -> tuple[bool, str]:
         """Hand one frame to the calibrator (on the worker); fit, adopt and
@@ -536,7 +537,7 @@ class CalibNodeBase(Node):
         parent = self.param("parent_frame")
         child = self.param("child_frame")
         topics = {i.name: self.resolved_topic(i) for i in self._inputs}
-        for name, r in cal.results.items():
+        for r in cal.results.values():
             if parent:
                 r.parent_frame = parent
             if child and cal.is_single:
@@ -578,7 +579,9 @@ class CalibNodeBase(Node):
         return True, ""
 
     def _where(self) -> str:
-        return self.output_path if (self.output_path and self.in_effect_source == "file") else "the calibration in effect"
+        if self.output_path and self.in_effect_source == "file":
+            return self.output_path
+        return "the calibration in effect"
 
     def _publish_in_effect(self, cal: CalibrationSet) -> None:
         for r in cal.results.values():

@@ -183,7 +183,7 @@ def replay(method: str, bag_path: str, params_file: str | None = None, output_pa
                 pub.publish(bytes(rec.raw))
                 sent += 1
                 counts[rec.topic] += 1
-                spin_until(lambda: state["ack"] >= sent, message_timeout_s, f"ack of message {sent}")
+                spin_until(lambda n=sent: state["ack"] >= n, message_timeout_s, f"ack of message {sent}")
                 if progress and time.monotonic() - last_report > 0.25:
                     st = state["status"]
                     sys.stderr.write(f"\r  sent {sent}{'/' + str(total) if total else ''} messages; "
@@ -199,7 +199,7 @@ def replay(method: str, bag_path: str, params_file: str | None = None, output_pa
         if outcome.bag_error:
             log(f"bag error after {sent} messages: {outcome.bag_error}")
         # the final status (and latched result) of the last message's work
-        spin_until(lambda: state["status"].get("inputs_processed", -1) >= sent, 10.0, "the final status")
+        spin_until(lambda n=sent: state["status"].get("inputs_processed", -1) >= n, 10.0, "the final status")
         end = time.monotonic() + 0.3
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
