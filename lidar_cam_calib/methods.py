@@ -58,6 +58,7 @@ METHODS: dict[str, MethodSpec] = {
 # Benchmarks that belong to no method.
 EXTRA_BENCHES: dict[str, tuple[str, str]] = {
     "decode": ("lidar_cam_calib.io.bench_decode:main", "message conversion speed (PointCloud2, depth Image)"),
+    "latency": ("lidar_cam_calib.ros.bench_latency:main", "input callback delay of a live node while it fits"),
 }
 
 

@@ -249,6 +249,9 @@ class CalibNodeBase(Node):
         try:
             value = self.declare_parameter(p.name, _ros_value(p.default), _descriptor(p)).value
         except rclpy.exceptions.ParameterException as e:  # wrong type / out of range override
+            given = (getattr(self, "_parameter_overrides", {}) or {}).get(p.name)
+            if given is not None:
+                check_value(p.name, given.value, p.meta, p.default)  # says it our way when it can
             raise ConfigError(f"parameter {p.name}: {_first_line(e)}; allowed: {allowed_text(p.meta)}") from None
         finally:
             self._declaring = ""
