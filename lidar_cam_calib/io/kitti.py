@@ -17,8 +17,11 @@ directory, zstd chunks) with ``truth.yaml`` inside it:
 * ``/camera/camera_info``  sensor_msgs/msg/CameraInfo: K = P_rect_02[:, :3], no distortion (the
                            images are rectified), R = I, P = P_rect_02.
 
-Stamps: the source has no timestamps.txt, so frame ``k`` (sorted by file name, paired by the
-file stem) is stamped ``start_stamp_s + k / 10`` on both streams (KITTI's nominal 10 Hz).
+Stamps: when the drive has KITTI's ``image_02/timestamps.txt`` and
+``velodyne_points/timestamps.txt`` (one ``YYYY-MM-DD HH:MM:SS.fffffffff`` UTC line per frame, the
+LiDAR's being the moment it faced forward), they are used; otherwise frame ``k`` (sorted by file
+name, paired by the file stem) is stamped ``start_stamp_s + k / 10`` on both streams (KITTI's
+nominal 10 Hz). ``truth.yaml`` says which (``stamps``).
 
 Truth (``truth.yaml``): ``T_camera_lidar`` = Velodyne -> rectified cam2, as KITTI derives it:
 ``inv(K2) @ P_rect_02 @ R_rect_00 @ [R|T]`` with ``K2 = P_rect_02[:, :3]``; the translation
@@ -101,6 +104,26 @@ def kitti_calibration(kitti_dir) -> tuple[np.ndarray, np.ndarray]:
     return T_cl, P2
 
 
+def read_kitti_timestamps(path: Path) -> np.ndarray:
+    """KITTI ``timestamps.txt`` (``2011-09-26 13:02:25.964389445`` per line, UTC) -> epoch seconds."""
+    import datetime as _dt
+
+    out = []
+    for i, line in enumerate(Path(path).read_text(encoding="utf-8", errors="replace").splitlines()):
+        line = line.strip()
+        if not line:
+            continue
+        try:
+            day, clock = line.split()
+            hms, _, frac = clock.partition(".")
+            base = _dt.datetime.strptime(f"{day} {hms}", "%Y-%m-%d %H:%M:%S").replace(tzinfo=_dt.timezone.utc)
+            out.append(base.timestamp() + (float("0." + frac) if frac else 0.0))
+        except ValueError as exc:
+            raise InputError(f"{path}:{i + 1}: cannot parse timestamp {line!r} "
+                             "(expected 'YYYY-MM-DD HH:MM:SS.fffffffff')") from exc
+    return np.array(out, dtype=float)
+
+
 def _frames(kitti_dir: Path) -> list[tuple[str, Path, Path]]:
     img_dir = kitti_dir / "image_02" / "data"
     pc_dir = kitti_dir / "velodyne_points" / "data"
@@ -138,6 +161,14 @@ def kitti_to_bag(kitti_dir, out_dir, overwrite: bool = False, max_frames: int | 
         raise InputError(f"KITTI folder not found: {kitti_dir}")
     T_cl, P2 = kitti_calibration(kitti_dir)
     frames = _frames(kitti_dir)
+    stamps_img = stamps_pc = None
+    ts_img = kitti_dir / "image_02" / "timestamps.txt"
+    ts_pc = kitti_dir / "velodyne_points" / "timestamps.txt"
+    if ts_img.is_file() and ts_pc.is_file():
+        t_img, t_pc = read_kitti_timestamps(ts_img), read_kitti_timestamps(ts_pc)
+        idx = [int(stem) for stem, _, _ in frames] if all(s.isdigit() for s, _, _ in frames) else []
+        if idx and max(idx) < min(t_img.size, t_pc.size):
+            stamps_img, stamps_pc = t_img[idx], t_pc[idx]
     if max_frames is not None:
         if int(max_frames) < 1:
             raise InputError(f"max_frames must be >= 1, got {max_frames}")
@@ -157,31 +188,43 @@ def kitti_to_bag(kitti_dir, out_dir, overwrite: bool = False, max_frames: int | 
     size = None
     writer = _open_writer(bag_path, True)
     try:
-        for k, (stem, img_p, bin_p) in enumerate(frames):
-            t = float(start_stamp_s) + k / KITTI_RATE_HZ
-            raw = np.fromfile(bin_p, dtype=np.float32)
-            if raw.size % 4:
-                raise InputError(f"{bin_p}: {raw.size} floats is not a multiple of 4 (x y z reflectance)")
-            pts = raw.reshape(-1, 4)
-            img = cv2.imread(str(img_p), cv2.IMREAD_COLOR)
-            if img is None:
-                raise InputError(f"cannot decode image {img_p}")
-            if size is None:
-                size = (img.shape[1], img.shape[0])
-            elif size != (img.shape[1], img.shape[0]):
-                raise InputError(f"{img_p} is {img.shape[1]}x{img.shape[0]}, earlier images were "
-                                 f"{size[0]}x{size[1]}")
+        events = []
+        for k in range(len(frames)):
+            if stamps_img is not None:
+                events += [(float(stamps_pc[k]), 0, k), (float(stamps_img[k]), 1, k)]
+            else:
+                t = float(start_stamp_s) + k / KITTI_RATE_HZ
+                events += [(t, 0, k), (t, 1, k)]
+        events.sort()
+        clouds: dict = {}
+        for t, kind, k in events:
+            stem, img_p, bin_p = frames[k]
             ns = stamp_to_ns(t)
-            hdr_l = fac.make_header(t, LIDAR_FRAME)
-            hdr_c = fac.make_header(t, CAMERA_FRAME)
-            K = P2[:, :3]
-            info = fac.make("sensor_msgs/msg/CameraInfo", header=hdr_c, width=int(img.shape[1]),
-                            height=int(img.shape[0]), distortion_model="plumb_bob", d=np.zeros(5),
-                            k=K.reshape(-1), r=np.eye(3).reshape(-1), p=P2.reshape(-1))
-            out = [(TOPIC_POINTS, "sensor_msgs/msg/PointCloud2",
-                    convert.arrays_to_pointcloud2(pts[:, :3], fac, hdr_l, intensity=pts[:, 3])),
-                   (TOPIC_IMAGE, "sensor_msgs/msg/Image", convert.array_to_image(img, "bgr8", fac, hdr_c)),
-                   (TOPIC_INFO, "sensor_msgs/msg/CameraInfo", info)]
+            if kind == 0:
+                raw = np.fromfile(bin_p, dtype=np.float32)
+                if raw.size % 4:
+                    raise InputError(f"{bin_p}: {raw.size} floats is not a multiple of 4 (x y z reflectance)")
+                pts = raw.reshape(-1, 4)
+                clouds[k] = int(pts.shape[0])
+                hdr_l = fac.make_header(t, LIDAR_FRAME)
+                out = [(TOPIC_POINTS, "sensor_msgs/msg/PointCloud2",
+                        convert.arrays_to_pointcloud2(pts[:, :3], fac, hdr_l, intensity=pts[:, 3]))]
+            else:
+                img = cv2.imread(str(img_p), cv2.IMREAD_COLOR)
+                if img is None:
+                    raise InputError(f"cannot decode image {img_p}")
+                if size is None:
+                    size = (img.shape[1], img.shape[0])
+                elif size != (img.shape[1], img.shape[0]):
+                    raise InputError(f"{img_p} is {img.shape[1]}x{img.shape[0]}, earlier images were "
+                                     f"{size[0]}x{size[1]}")
+                hdr_c = fac.make_header(t, CAMERA_FRAME)
+                K = P2[:, :3]
+                info = fac.make("sensor_msgs/msg/CameraInfo", header=hdr_c, width=int(img.shape[1]),
+                                height=int(img.shape[0]), distortion_model="plumb_bob", d=np.zeros(5),
+                                k=K.reshape(-1), r=np.eye(3).reshape(-1), p=P2.reshape(-1))
+                out = [(TOPIC_IMAGE, "sensor_msgs/msg/Image", convert.array_to_image(img, "bgr8", fac, hdr_c)),
+                       (TOPIC_INFO, "sensor_msgs/msg/CameraInfo", info)]
             for topic, typ, msg in out:
                 writer.write(topic, typ, ns, msg)
                 counts[topic] = counts.get(topic, 0) + 1
@@ -203,11 +246,13 @@ def kitti_to_bag(kitti_dir, out_dir, overwrite: bool = False, max_frames: int | 
         "topics": {"points": TOPIC_POINTS, "image": TOPIC_IMAGE, "camera_info": TOPIC_INFO},
         "message_counts": counts,
         "rate_hz": KITTI_RATE_HZ,
-        "start_stamp_s": float(start_stamp_s),
+        "stamps": "timestamps.txt" if stamps_img is not None else "frame index / 10 Hz",
+        "start_stamp_s": float(stamps_pc[0]) if stamps_img is not None else float(start_stamp_s),
         "frame_files": [s for s, _, _ in frames],
+        "points_per_sweep": {"min": min(clouds.values(), default=0), "max": max(clouds.values(), default=0)},
         "time_offset_s": 0.0,
-        "notes": "stamps are frame index / 10 Hz (the source has no timestamps); sweeps are not "
-                 "motion-compensated and carry no per-point time",
+        "notes": "KITTI triggers the cameras when the LiDAR faces forward (time offset 0 by design); "
+                 "sweeps are not motion-compensated and carry no per-point time",
     }
     tmp = truth_path.with_suffix(".yaml.tmp")
     with open(tmp, "w", encoding="utf-8") as fh:
