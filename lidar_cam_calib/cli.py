@@ -11,6 +11,7 @@ import numpy as np
 import yaml
 
 from . import methods
+from .core.calibrator import collected_count
 from .core.geometry import inv_T, pose_errors, rpy_from_R
 
 EXIT_CODES = """exit codes:
@@ -88,7 +89,7 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
     cand = st.get("candidate")
     code = 0
     if oc.result is None:
-        n = st.get("observations", st.get("frames", 0))
+        n = collected_count(st)
         print(f"error: no calibration: {n} observation(s) accepted; last reason: "
               f"{st.get('last_reason') or 'none given'}", file=sys.stderr)
         code = 3

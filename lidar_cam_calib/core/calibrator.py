@@ -47,6 +47,18 @@ class Calibrator(Protocol):
         """Drop every collected frame."""
 
 
+COUNT_KEYS = ("observations", "placements", "frames_collected", "frames")
+
+
+def collected_count(status: dict) -> int:
+    """How many frames a calibrator's ``status()`` says it holds (methods name
+    them observations, placements or frames)."""
+    for k in COUNT_KEYS:
+        if isinstance(status.get(k), int):
+            return int(status[k])
+    return 0
+
+
 def cfg_field(default: Any, help: str, *, range: tuple | None = None, choices: tuple | None = None,
               length: int | tuple | None = None, exclusive_min: bool = False, param: bool = True,
               read_only: bool = False) -> Any:
@@ -130,4 +142,4 @@ def validate_config(cfg: Any) -> None:
             check_value(f.name, v, f.metadata, default)
 
 
-__all__ = ["Calibrator", "Verdict", "allowed_text", "cfg_field", "check_value", "validate_config"]
+__all__ = ["Calibrator", "Verdict", "allowed_text", "cfg_field", "check_value", "collected_count", "validate_config"]

@@ -49,7 +49,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String, UInt64
 from std_srvs.srv import Trigger
 
-from ..core.calibrator import allowed_text, check_value, validate_config
+from ..core.calibrator import allowed_text, check_value, collected_count, validate_config
 from ..core.errors import CalibError, ConfigError, InputError
 from ..core.result import (CalibrationResult, CalibrationSet, ResultFileError, check_output_path, to_plain,
                            write_atomic)
@@ -174,6 +174,7 @@ class CalibNodeBase(Node):
         self._calib_status: dict = {}
         self._busy = ""
         self.max_input_delay_ms = 0.0
+        self.dropped_busy = 0                       # live frames dropped while the worker was busy
 
         for name, default, meta in BASE_PARAMS:
             self._declare(_Param(name, default, meta, "base"))
@@ -196,7 +197,6 @@ class CalibNodeBase(Node):
         self._stop = threading.Event()
         self._worker = threading.Thread(target=self._work_loop, name=f"{node_name}_worker", daemon=True)
         self._worker.start()
-        self._warn_unknown_overrides()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._load_existing_result()
         self.create_timer(float(self.param("status_period_s")), self.publish_status,
@@ -206,6 +206,7 @@ class CalibNodeBase(Node):
         """Call at the end of a node's __init__, once every input exists: the
         latched ~/ack = 0 and ~/status (with the inputs) tell a replayer the
         node is up and what it reads."""
+        self._warn_unknown_overrides()
         if self.pub_ack is not None:
             self.pub_ack.publish(UInt64(data=0))
         self.publish_status()
@@ -227,6 +228,9 @@ class CalibNodeBase(Node):
 
     def on_capture(self) -> tuple[bool, str]:
         return False, f"{self.method_name} does not take observations on demand"
+
+    def after_fit(self) -> None:
+        """Worker, after every fit attempt (adopted or not)."""
 
     def input_frames(self, frame: Any) -> dict:
         """Override: frame ids {name: (parent, child)} are taken from the result."""
@@ -277,7 +281,10 @@ class CalibNodeBase(Node):
                   callback: Callable[[Any], None], required: bool = True) -> None:
         """Declare a read-only topic parameter and subscribe to it. The
         callback runs in the input group; exceptions become reasons."""
-        topic = self._declare(_Param(param, default_topic, _meta(help, read_only=True), "input"))
+        if param in self._params:   # the method's config names its own topics
+            topic = self.param(param)
+        else:
+            topic = self._declare(_Param(param, default_topic, _meta(help, read_only=True), "input"))
         inp = _Input(name, msg_type, param, required, callback)
         if topic:
             qos = input_qos(self.param("input_reliability"), int(self.param("input_queue_depth")))
@@ -426,7 +433,13 @@ class CalibNodeBase(Node):
         now = time.monotonic()
         if now - self._log_times.get(key, -math.inf) >= 1.0:
             self._log_times[key] = now
-            getattr(self.get_logger(), level)(reason)
+            # one call site per severity: rclpy refuses a call site whose severity changes
+            if level == "info":
+                self.get_logger().info(reason)
+            elif level == "error":
+                self.get_logger().error(reason)
+            else:
+                self.get_logger().warning(reason)
 
     def fresh_enough(self, *stamps: float) -> str:
         """'' when every stamp is newer than the last accepted observation and
@@ -470,11 +483,10 @@ class CalibNodeBase(Node):
                 box[0] = job()
             except CalibError as e:
                 box[0] = (False, str(e))
-                self.reject(str(e))
+                self._safe_reject(str(e))
             except Exception as e:  # noqa: BLE001 - the node stays up; the bug is logged
                 box[0] = (False, f"{type(e).__name__}: {e}")
-                self.get_logger().error(f"worker job failed:\n{traceback.format_exc()}")
-                self.reject(box[0][1])
+                self._safe_reject(box[0][1], traceback.format_exc())
             finally:
                 self._busy = ""
                 done.set()
@@ -486,17 +498,33 @@ class CalibNodeBase(Node):
                 self._calib_status = {"status_error": str(e)}
             self.publish_status()
 
-    def submit_frame(self, frame: Any, stamp_s: float, auto: bool, wait: bool) -> tuple[bool, str]:
+    def _safe_reject(self, reason: str, trace: str = "") -> None:
+        """The worker never dies of its own error handling."""
+        try:
+            if trace:
+                self.get_logger().error(f"worker job failed:\n{trace}")
+            self.reject(reason)
+        except Exception:  # noqa: BLE001 - last resort: keep the worker alive
+            self.last_reason = reason
+
+    def submit_frame(self, frame: Any, stamp_s: float, auto: bool, wait: bool, max_queued: int = 0
+                     ) -> tuple[bool, str]:
         """Hand one frame to the calibrator (on the worker); fit, adopt and
-        publish when it is ready."""
+        publish when it is ready. Live, with ``max_queued`` > 0, a frame that
+        finds that many jobs waiting (a long fit) is dropped and counted
+        instead of piling up; lock-step replay never drops."""
+        if max_queued and self.pub_ack is None and self._jobs.qsize() >= max_queued:
+            self.dropped_busy += 1
+            return False, f"dropped: the worker is {self._busy or 'busy'}"
         gen = self._generation
         return self.submit(lambda: self._process_frame(frame, stamp_s, auto, gen), wait=wait)
 
-    def _process_frame(self, frame: Any, stamp_s: float, auto: bool, gen: int) -> tuple[bool, str]:
+    def _process_frame(self, frame: Any, stamp_s: float, auto: bool, gen: int, **add_kw: Any) -> tuple[bool, str]:
+        """Worker: ``calib.add(frame, **add_kw)``, then fit and adopt when ready."""
         if gen != self._generation:
             return False, "frame from before ~/recalibrate (or a time jump): dropped"
         self._busy = "adding a frame"
-        verdict = self.calib.add(frame)
+        verdict = self.calib.add(frame, **add_kw)
         if not verdict.accepted:
             self.reject(verdict.reason)
             return False, verdict.reason
@@ -506,7 +534,8 @@ class CalibNodeBase(Node):
         note = verdict.reason + (" (automatic)" if auto else "")
         if self.calib.ready():
             note += "; " + self._fit_and_adopt(frame, gen)
-        self.get_logger().info(note)
+            self.after_fit()
+        self.log_throttled(note, "info")
         return True, note
 
     def _fit_and_adopt(self, frame: Any, gen: int) -> str:
@@ -646,6 +675,8 @@ class CalibNodeBase(Node):
         d["result_file"] = self.last_file_note
         d["busy"] = self._busy
         d["inputs_processed"] = self._input_count
+        if self.dropped_busy:
+            d["frames_dropped_while_busy"] = self.dropped_busy
         d["inputs"] = [{"name": i.name, "topic": self.resolved_topic(i), "required": i.required,
                         "type": _type_name(i.msg_type)} for i in self._inputs]
         if self.pub_ack is None:
@@ -703,7 +734,7 @@ class CalibNodeBase(Node):
         """Drop everything collected (calibrator, node input state, stamps)."""
         with self._lock:
             self._generation += 1
-            n = _count(self._calib_status)
+            n = collected_count(self._calib_status)
             self._last_stamp.clear()
             self.refused_after_s = -math.inf
             self.last_accepted_s = -math.inf
@@ -784,13 +815,6 @@ def _obs(cal: CalibrationSet) -> dict:
     return {k: r.observations_used for k, r in cal.results.items()}
 
 
-def _count(st: dict) -> int:
-    for k in ("observations", "frames"):
-        if isinstance(st.get(k), int):
-            return st[k]
-    return 0
-
-
 def _sigma_text(cal: CalibrationSet) -> str:
     return ", ".join((f"{k}: " if k else "") + f"sigma {r.sigma()[0]:.3f} deg / {r.sigma()[1]:.2f} mm"
                      for k, r in cal.results.items())
@@ -827,9 +851,13 @@ def run_node(node_cls: type, args: list[str] | None = None) -> int:
         executor = MultiThreadedExecutor(num_threads=4)
         executor.add_node(node)
         try:
-            executor.spin()
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
+            while rclpy.ok():
+                try:
+                    executor.spin()
+                except (KeyboardInterrupt, ExternalShutdownException):
+                    break
+                except Exception:  # noqa: BLE001 - a callback's bug never ends the node
+                    node.get_logger().error(f"callback failed:\n{traceback.format_exc()}")
         finally:
             executor.shutdown(timeout_sec=0.5)
     except KeyboardInterrupt:

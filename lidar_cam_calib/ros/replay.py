@@ -27,6 +27,7 @@ import time
 from typing import Callable
 
 from .. import methods
+from ..core.calibrator import collected_count
 from ..core.result import CalibrationSet
 from ..io.bag import BagError, bag_message_counts, bag_topics, read_bag
 from .env import apply_loopback_env, loopback_env
@@ -142,8 +143,7 @@ def replay(method: str, bag_path: str, params_file: str | None = None, output_pa
     player = Node(f"lcc_player_{os.getpid()}_{next(_counter)}", context=context)
     executor = rclpy.executors.SingleThreadedExecutor(context=context)
     executor.add_node(player)
-    latched = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    from .node_base import LATCHED as latched
     state = {"ack": -1, "yaml": None, "status": {}}
     player.create_subscription(UInt64, f"{base}/ack", lambda m: state.__setitem__("ack", int(m.data)), latched)
     player.create_subscription(String, f"{base}/result_yaml", lambda m: state.__setitem__("yaml", m.data), latched)
@@ -187,7 +187,7 @@ def replay(method: str, bag_path: str, params_file: str | None = None, output_pa
                 if progress and time.monotonic() - last_report > 0.25:
                     st = state["status"]
                     sys.stderr.write(f"\r  sent {sent}{'/' + str(total) if total else ''} messages; "
-                                     f"observations {st.get('observations', st.get('frames', '?'))}   ")
+                                     f"observations {collected_count(st)}   ")
                     sys.stderr.flush()
                     last_report = time.monotonic()
         except BagError as e:
