@@ -154,7 +154,7 @@ def kitti_to_bag(kitti_dir, out_dir, overwrite: bool = False, max_frames: int | 
     from lidar_cam_calib.io import convert
     from lidar_cam_calib.io.bag import BagError
     from lidar_cam_calib.io.msgtypes import RosbagsFactory, stamp_to_ns
-    from lidar_cam_calib.sim.lrf_bag import _open_writer
+    from lidar_cam_calib.io.bag import BagWriter
 
     kitti_dir = Path(kitti_dir)
     if not kitti_dir.is_dir():
@@ -186,7 +186,7 @@ def kitti_to_bag(kitti_dir, out_dir, overwrite: bool = False, max_frames: int | 
     fac = RosbagsFactory()
     counts: dict = {}
     size = None
-    writer = _open_writer(bag_path, True)
+    writer = BagWriter(bag_path, compress=True).open()  # BagWriter refuses an existing path
     try:
         events = []
         for k in range(len(frames)):

@@ -59,7 +59,7 @@ def write_street_bag(scenario, out_dir, seed: int | None = None, overwrite: bool
     from lidar_cam_calib.io import convert
     from lidar_cam_calib.io.bag import BagError
     from lidar_cam_calib.io.msgtypes import RosbagsFactory, stamp_to_ns
-    from lidar_cam_calib.sim.lrf_bag import _open_writer
+    from lidar_cam_calib.io.bag import BagWriter
 
     sc = load_street_scenario(scenario)
     if seed is not None:
@@ -81,7 +81,7 @@ def write_street_bag(scenario, out_dir, seed: int | None = None, overwrite: bool
     sweep_stamps, image_stamps, exposures = [], [], []
     n_points = []
     enc = "mono8" if sc.camera.mono else "bgr8"
-    writer = _open_writer(bag_path, True)
+    writer = BagWriter(bag_path, compress=True).open()  # BagWriter refuses an existing path
     try:
         for stamp, kind, item in it:
             ns = stamp_to_ns(stamp)
