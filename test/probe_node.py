@@ -15,11 +15,11 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from lidar_cam_calib.core.calibrator import Verdict, cfg_field  # noqa: E402
-from lidar_cam_calib.core.errors import NotReadyError  # noqa: E402
-from lidar_cam_calib.core.geometry import make_T  # noqa: E402
-from lidar_cam_calib.core.result import CalibrationResult, CalibrationSet  # noqa: E402
-from lidar_cam_calib.ros.node_base import CalibNodeBase, run_node  # noqa: E402
+from lidar_cam_calib.core.calibrator import Verdict, cfg_field
+from lidar_cam_calib.core.errors import NotReadyError
+from lidar_cam_calib.core.geometry import make_T
+from lidar_cam_calib.core.result import CalibrationResult, CalibrationSet
+from lidar_cam_calib.ros.node_base import CalibNodeBase, run_node
 
 
 @dataclasses.dataclass

@@ -34,10 +34,15 @@ class TargetlessCalibNode(CalibNodeBase):
         self.camera = None
         self.masks: collections.OrderedDict = collections.OrderedDict()
         self._last_sweep: LidarSweep | None = None
-        self.add_input("lidar", PointCloud2, "lidar_topic", "/points", "", self._on_cloud)
-        self.add_input("image", Image, "image_topic", "/camera/image_raw", "", self._on_image)
-        self.add_input("camera_info", CameraInfo, "camera_info_topic", "/camera/camera_info", "", self._on_info)
-        self.add_input("mask", Image, "mask_topic", "", "", self._on_mask, required=False)
+        self.add_input("lidar", PointCloud2, "lidar_topic", "/points", "PointCloud2 of the spinning LiDAR "
+                       "(per-point time where the driver publishes it).", self._on_cloud)
+        self.add_input("image", Image, "image_topic", "/camera/image_raw", "Camera image (mono8, bgr8, rgb8).",
+                       self._on_image)
+        self.add_input("camera_info", CameraInfo, "camera_info_topic", "/camera/camera_info",
+                       "CameraInfo of the image (its intrinsics).", self._on_info)
+        self.add_input("mask", Image, "mask_topic", "", "Optional mono8 mask of moving objects from a segmentation "
+                       "node (non-zero = dynamic), matched to images by stamp; empty: none.", self._on_mask,
+                       required=False)
         self.get_logger().info(f"targetless calibration: lidar={self.param('lidar_topic')} "
                                f"image={self.param('image_topic')} mask={self.param('mask_topic') or 'none'}")
         self.announce_ready()

@@ -1,0 +1,472 @@
+"""TargetlessCalibrator: LiDAR + camera extrinsic from a drive, no target, no initial guess (ROS-free).
+
+Paper 001 (Nagy & Benedek 2020) as implemented here, per calibration window:
+
+1. Frame selection: an image is kept when the median sparse optical flow to
+   the last kept image is at least ``min_motion_px`` (paper: 10 px), until
+   ``n_frames`` (paper: 8) are kept. Sweeps are buffered for the same span.
+2. SfM (:mod:`.sfm`): SIFT, matching, incremental reconstruction with bundle
+   adjustment, tracks, ``T1`` by EPnP on 45 points, the re-projection gate,
+   densification by multi-view flow-track triangulation.
+3. Metric scale and ego-motion (:mod:`.dynamic`): scan-to-scan ICP odometry;
+   the SfM scale is the ratio of travelled distances; the reference sweep is
+   de-skewed with the odometry velocity (per-point time, or the azimuth when
+   the driver publishes no time); moving objects are removed by motion
+   consistency between sweeps; an optional image mask removes them in the SfM.
+4. Both clouds levelled on their ground planes (LiDAR: +z up; camera: -y up),
+   objects (:mod:`.objects`), 4D Hough vote over yaw and translation, ICP
+   (:mod:`.align`), final ``solvePnP`` (LM) from LiDAR points pushed through
+   the chain (:mod:`.pnp`).
+5. Gates: SfM re-projection below ``max_sfm_reprojection_px`` (paper 2 px) and
+   the registered clouds' (partial) Hausdorff distance below ``max_hausdorff_m``
+   (paper 5 cm); a failed gate raises :class:`CalibError` naming it.
+
+Solvers (``solver``): ``oba`` (object alignment only), ``oba_icp``, ``paper``
+(+ PnP from object centroids, voxel-majority shapes, z extent in the
+compatibility test), ``ours`` (object-level shapes, verified Hough cells,
+scale estimated in the ICP, PnP on every registered LiDAR point in view).
+The curve-based non-rigid refinement is not implemented (see the README).
+
+Clock: the camera stamp minus ``time_offset_s`` is the exposure on the LiDAR
+clock. Under constant velocity an unknown offset is indistinguishable from a
+translation along the driving direction, so it cannot be estimated from one
+window; its prior ``time_offset_sigma_s`` times the speed enters the
+covariance along the motion direction.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..core.calibrator import Verdict, cfg_field
+from ..core.errors import CalibError, NotReadyError
+from ..core.geometry import inv_T, make_T, skew, so3_exp, so3_log, transform_points
+from ..core.result import CalibrationResult
+from .align import (AlignConfig, HoughResult, bev_translation, estimate_normals, hough_align,
+                    icp_point_to_plane, motion_yaw, rz)
+from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, point_motion,
+                      voxel_down)
+from .frame import CameraFrame, LidarSweep
+from .objects import ObjectConfig, extract_objects, ground_plane, level_rotation
+from .pnp import _ideal_project, final_pnp
+from .sfm import SfmConfig, apply_scale, densify, depth_sigma, run_sfm
+
+SOLVERS = ("oba", "oba_icp", "paper", "ours")
+
+
+@dataclasses.dataclass
+class TargetlessConfig:
+    """The four ``*_topic`` fields are declared by the node itself (``add_input``),
+    hence ``param=False`` here; they document the names and defaults."""
+    lidar_topic: str = cfg_field("/points", "PointCloud2 of the spinning LiDAR", read_only=True, param=False)
+    image_topic: str = cfg_field("/camera/image_raw", "camera image (mono8/bgr8/rgb8)", read_only=True, param=False)
+    camera_info_topic: str = cfg_field("/camera/camera_info", "CameraInfo of the image", read_only=True, param=False)
+    mask_topic: str = cfg_field("", "optional mono8 mask of moving objects (non-zero = dynamic); empty: none",
+                                read_only=True, param=False)
+    solver: str = cfg_field("ours", "pipeline variant", choices=SOLVERS)
+    n_frames: int = cfg_field(8, "images per SfM window (paper: 8)", range=(3, 30))
+    min_motion_px: float = cfg_field(10.0, "global image motion (75th percentile of sparse flow) between kept "
+                                           "frames (paper: 10 px at 1288 px width)",
+                                     range=(0.0, 500.0))
+    max_sfm_reprojection_px: float = cfg_field(2.0, "gate: SfM mean re-projection error (paper: 2 px)",
+                                               range=(0.1, 50.0))
+    max_hausdorff_m: float = cfg_field(0.05, "gate: partial Hausdorff distance of the registered clouds "
+                                             "(paper: 5 cm)", range=(0.005, 5.0))
+    hausdorff_quantile: float = cfg_field(0.5, "quantile of LiDAR-to-camera-cloud point-to-surface distances "
+                                               "used as the partial Hausdorff distance", range=(0.1, 1.0))
+    dynamic_dist_m: float = cfg_field(0.3, "an object whose points moved more than this between compensated "
+                                           "sweeps is dynamic", range=(0.02, 5.0))
+    dynamic_sweep_gap: int = cfg_field(3, "compare the reference sweep with sweeps this many apart",
+                                       range=(1, 20))
+    time_offset_s: float = cfg_field(0.0, "known camera clock minus LiDAR clock", range=(-5.0, 5.0))
+    time_offset_sigma_s: float = cfg_field(0.01, "1-sigma prior of the unknown part of the clock offset "
+                                                 "(enters the covariance times the speed)", range=(0.0, 1.0))
+    sweep_spin: int = cfg_field(-1, "spin direction when the driver publishes no per-point time "
+                                    "(-1 clockwise from above: Velodyne, Ouster)", choices=(-1, 1))
+    sweep_start_azimuth_deg: float = cfg_field(180.0, "azimuth where a sweep starts (no per-point time)",
+                                               range=(-360.0, 360.0))
+    sweep_period_s: float = cfg_field(0.1, "sweep period when no per-point time is published", range=(0.01, 1.0))
+    deskew: bool = cfg_field(True, "de-skew the reference sweep with the odometry velocity")
+    max_point_sigma_m: float = cfg_field(0.15, "camera-cloud points with a larger predicted triangulation "
+                                              "error are dropped", range=(0.005, 10.0))
+    motion_yaw_window_deg: float = cfg_field(3.0, "ours: Hough yaws within this of the yaw from the travel "
+                                                  "directions", range=(0.25, 180.0))
+    dense_refs: int = cfg_field(4, "frames the densification starts flow tracks from", range=(1, 30))
+    covariance_inflation: float = cfg_field(3.0, "factor on the ICP covariance for correlated residuals",
+                                            range=(1.0, 1000.0))
+    seed: int = cfg_field(0, "random seed of the RANSAC steps", range=(0, 2**31 - 1))
+    objects: ObjectConfig = dataclasses.field(default_factory=lambda: ObjectConfig(radius_m=30.0))
+    align: AlignConfig = dataclasses.field(default_factory=AlignConfig)
+    sfm: SfmConfig = dataclasses.field(default_factory=SfmConfig)
+
+
+@dataclasses.dataclass
+class WindowDiagnostics:
+    """What one fit measured (bench and tests read it)."""
+    T_oba: np.ndarray | None = None
+    T_icp: np.ndarray | None = None
+    T_final: np.ndarray | None = None
+    timings_s: dict = dataclasses.field(default_factory=dict)
+    metrics: dict = dataclasses.field(default_factory=dict)
+
+
+def _median_flow_px(a: np.ndarray, b: np.ndarray) -> float:
+    import cv2
+    ga = a if a.ndim == 2 else cv2.cvtColor(a, cv2.COLOR_BGR2GRAY)
+    gb = b if b.ndim == 2 else cv2.cvtColor(b, cv2.COLOR_BGR2GRAY)
+    pts = cv2.goodFeaturesToTrack(ga, 400, 0.01, 8)
+    if pts is None or len(pts) < 10:
+        return 0.0
+    nxt, st, _ = cv2.calcOpticalFlowPyrLK(ga, gb, pts, None, winSize=(21, 21), maxLevel=4)
+    ok = st.ravel() == 1
+    if ok.sum() < 10:
+        return math.inf  # lost track: large motion
+    return float(np.percentile(np.linalg.norm((nxt - pts).reshape(-1, 2)[ok], axis=1), 75))
+
+
+def deskew_sweep(sweep: LidarSweep, T_prev_cur: np.ndarray, cfg: TargetlessConfig) -> np.ndarray:
+    """Points of ``sweep`` in the LiDAR frame at its stamp, with the constant
+    velocity of the odometry link ``T_prev_cur`` (previous sweep <- this one)."""
+    p = sweep.points
+    if sweep.time_s is not None:
+        t = sweep.time_s
+    else:
+        az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
+        t = np.mod(cfg.sweep_spin * (az - cfg.sweep_start_azimuth_deg), 360.0) / 360.0 * cfg.sweep_period_s
+    xi_r = so3_log(T_prev_cur[:3, :3]) / cfg.sweep_period_s
+    xi_t = T_prev_cur[:3, 3] / cfg.sweep_period_s
+    out = np.empty_like(p)
+    # group by time (72 bins are plenty: <= 1.4 ms apart)
+    bins = np.clip((t / cfg.sweep_period_s * 72).astype(int), -72, 143)
+    for b in np.unique(bins):
+        m = bins == b
+        tb = float(np.mean(t[m]))
+        R = so3_exp(xi_r * tb)
+        out[m] = p[m] @ R.T + xi_t * tb
+    return out
+
+
+class TargetlessCalibrator:
+    """Collects sweeps and images (``add``), calibrates one window (``fit``)."""
+
+    def __init__(self, cfg: TargetlessConfig | None = None):
+        self.cfg = cfg or TargetlessConfig()
+        self.last_diagnostics = WindowDiagnostics()
+        self.last_window_images: list = []
+        self.reset()
+
+    def reset(self) -> None:
+        self.images: list[CameraFrame] = []
+        self.sweeps: list[LidarSweep] = []
+        self.last_reason = ""
+        self.n_seen_images = 0
+
+    # -- collection -----------------------------------------------------------
+    def add(self, frame) -> Verdict:
+        if isinstance(frame, LidarSweep):
+            if self.sweeps and frame.stamp_s <= self.sweeps[-1].stamp_s:
+                v = Verdict(False, f"sweep stamp {frame.stamp_s:.3f} not after the last one")
+            elif frame.points.shape[0] < 1000:
+                v = Verdict(False, f"sweep has only {frame.points.shape[0]} valid points")
+            else:
+                self.sweeps.append(frame)
+                self._trim_sweeps()
+                v = Verdict(True, f"sweep {len(self.sweeps)} buffered")
+        elif isinstance(frame, CameraFrame):
+            self.n_seen_images += 1
+            if len(self.images) >= self.cfg.n_frames:
+                v = Verdict(False, "window full: call fit() or reset()")
+            elif not self.images:
+                self.images.append(frame)
+                v = Verdict(True, "first image of the window")
+            else:
+                mv = _median_flow_px(self.images[-1].image, frame.image)
+                if mv < self.cfg.min_motion_px:
+                    v = Verdict(False, f"image moved {mv:.1f} px < {self.cfg.min_motion_px:.0f} px since the last "
+                                       "kept frame (car too slow)")
+                else:
+                    self.images.append(frame)
+                    v = Verdict(True, f"image {len(self.images)}/{self.cfg.n_frames} kept ({mv:.0f} px motion)")
+        else:
+            v = Verdict(False, f"unknown frame type {type(frame).__name__}")
+        self.last_reason = v.reason
+        return v
+
+    def _trim_sweeps(self) -> None:
+        if self.images:
+            t0 = self._lidar_time(self.images[0]) - 0.5
+            while len(self.sweeps) > 2 and self.sweeps[1].stamp_s < t0:
+                self.sweeps.pop(0)
+        elif len(self.sweeps) > 8:
+            self.sweeps.pop(0)
+
+    def _lidar_time(self, img: CameraFrame) -> float:
+        return img.stamp_s - self.cfg.time_offset_s
+
+    def ready(self) -> bool:
+        if len(self.images) < self.cfg.n_frames or len(self.sweeps) < 2:
+            return False
+        return self.sweeps[-1].stamp_s + self.cfg.sweep_period_s >= self._lidar_time(self.images[-1])
+
+    def status(self) -> dict:
+        advice = ""
+        if len(self.images) < self.cfg.n_frames:
+            advice = "keep driving through a street with poles, trunks or signs"
+        elif not self.ready():
+            advice = "waiting for LiDAR sweeps covering the kept images"
+        return {"frames_collected": len(self.images), "frames_needed": self.cfg.n_frames,
+                "sweeps_buffered": len(self.sweeps), "images_seen": self.n_seen_images,
+                "last_reason": self.last_reason, "advice": advice, "ready": self.ready()}
+
+    # -- fit ------------------------------------------------------------------
+    def fit(self) -> CalibrationResult:
+        if not self.ready():
+            raise NotReadyError(f"targetless: {len(self.images)}/{self.cfg.n_frames} images kept and "
+                                f"{len(self.sweeps)} sweeps; keep driving")
+        diag = WindowDiagnostics()
+        self.last_diagnostics = diag
+        self.last_window_images = list(self.images)
+        T, cov, metrics = calibrate_window(self.images, self.sweeps, self.cfg, diag)
+        img0 = self.images[0]
+        return CalibrationResult(
+            method="targetless", parent_frame=self.sweeps[0].frame_id, child_frame=img0.frame_id,
+            T_child_parent=T, covariance=cov, metrics=metrics, observations_used=len(self.images),
+            stamps=[f.stamp_s for f in self.images], solver=self.cfg.solver,
+            notes=["Nagy & Benedek 2020 pipeline (SfM, objects, 4D Hough, ICP, PnP); curve refinement not "
+                   "implemented"])
+
+
+def _level(points: np.ndarray, up: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    n, d = ground_plane(points, rng, up)
+    L = make_T(level_rotation(n), np.zeros(3))
+    L[2, 3] = d  # n.p + d = 0 on the ground -> z = n.p + d
+    return L
+
+
+def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
+                     diag: WindowDiagnostics | None = None, cache: dict | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(T_camera_lidar, covariance 6x6, metrics) from one window of kept images
+    and the sweeps around them. Raises :class:`CalibError` (gate or failure).
+    ``cache``: a dict shared between calls on the same window (the bench runs
+    several solvers on one SfM and one odometry)."""
+    cache = {} if cache is None else cache
+    diag = diag or WindowDiagnostics()
+    solver = cfg.solver
+    ours = solver == "ours"
+    rng = np.random.default_rng(cfg.seed)
+    tm = diag.timings_s
+    t0 = time.perf_counter()
+    cam = images[0].camera
+    ims = [f.image for f in images]
+    masks = [f.mask for f in images] if any(f.mask is not None for f in images) else None
+    # -- SfM
+    if "sfm" not in cache:
+        sfm0 = run_sfm(ims, cam, masks, ref=0, cfg=cfg.sfm)
+        step = max(1, len(ims) // cfg.dense_refs)
+        refs = list(range(0, len(ims), step))[:cfg.dense_refs]
+        dense0 = densify(ims, cam, sfm0, masks, cfg.sfm, refs=refs)[0] \
+            if sfm0.reprojection_px <= cfg.max_sfm_reprojection_px else None
+        cache["sfm"] = (sfm0, dense0)
+    sfm, dense = cache["sfm"]
+    if sfm.reprojection_px > cfg.max_sfm_reprojection_px:
+        raise CalibError(f"gate failed: SfM re-projection error {sfm.reprojection_px:.2f} px > "
+                         f"{cfg.max_sfm_reprojection_px:.2f} px; calibration rejected (try another stretch)")
+    tm["sfm"] = time.perf_counter() - t0
+    # -- LiDAR odometry and metric scale
+    t1 = time.perf_counter()
+    t_img = np.array([f.stamp_s - cfg.time_offset_s for f in images])
+    stamps = np.array([s.stamp_s for s in sweeps])
+    lo = max(0, int(np.searchsorted(stamps, t_img[0])) - 1 - cfg.dynamic_sweep_gap)
+    hi = min(len(sweeps), int(np.searchsorted(stamps, t_img[-1])) + 1)
+    use = list(range(lo, hi))
+    if len(use) < 2:
+        raise CalibError("not enough LiDAR sweeps around the kept images")
+    if "odometry" not in cache:
+        cache["odometry"] = lidar_odometry([sweeps[i].points for i in use])
+    poses, links = cache["odometry"]
+    stamps_u = stamps[use]
+    P_img = np.array([interpolate_pose(stamps_u, poses, t) for t in t_img])
+    scale, scale_rel = metric_scale(sfm.centres(), P_img[:, :3, 3])
+    sfm = apply_scale(sfm, scale)
+    dense = dense * scale
+    tm["odometry"] = time.perf_counter() - t1
+    # reference sweep: nearest to the first image; de-skewed to its stamp
+    t2 = time.perf_counter()
+    jr = int(np.argmin(np.abs(stamps_u - t_img[0])))
+    ref_sweep = sweeps[use[jr]]
+    link = links[jr - 1] if jr > 0 else links[0]
+    lid = deskew_sweep(ref_sweep, link.T, cfg) if cfg.deskew else ref_sweep.points
+    # LiDAR pose at the reference exposure, relative to the reference sweep stamp
+    T_sweep_img = inv_T(poses[jr]) @ P_img[0]
+    ja = max(jr, 1)
+    speed = float(np.linalg.norm(link.T[:3, 3]) / max(stamps_u[ja] - stamps_u[ja - 1], 1e-3))
+    # -- dynamic objects (motion consistency with sweeps gap apart)
+    others, T_others = [], []
+    for dj in (-cfg.dynamic_sweep_gap, cfg.dynamic_sweep_gap):
+        j = jr + dj
+        if 0 <= j < len(use):
+            others.append(sweeps[use[j]].points)
+            T_others.append(inv_T(poses[jr]) @ poses[j])
+    # -- camera cloud: only points whose triangulation is precise (forward motion: far points ahead have
+    # tiny parallax and metre-level depth errors); sigma from the SfM's own re-projection error
+    cloud_all = np.concatenate([dense, sfm.points])
+    sig = depth_sigma(cloud_all, sfm.centres(), float(cam.K[0, 0]), max(sfm.reprojection_px, 0.2))
+    cloud_s = cloud_all[sig <= cfg.max_point_sigma_m]
+    if cloud_s.shape[0] < 500:
+        raise CalibError(f"only {cloud_s.shape[0]} camera-cloud points are triangulated to better than "
+                         f"{cfg.max_point_sigma_m * 100:.0f} cm: the camera barely moved sideways to the scene "
+                         "(drive past objects, not towards them)")
+    metrics_pre = {"camera_cloud_points": int(cloud_s.shape[0])}
+    # -- level both clouds
+    Ls = _level(cloud_s, np.array([0.0, -1.0, 0.0]), rng)
+    Ll = _level(lid, np.array([0.0, 0.0, 1.0]), rng)
+    cs = transform_points(Ls, cloud_s)
+    cl = transform_points(Ll, lid)
+    ocfg = dataclasses.replace(cfg.objects, shape_mode="object" if ours else "voxel")
+    acfg = dataclasses.replace(cfg.align, verify=ours or cfg.align.verify and solver != "paper",
+                               use_z_ratio=False if ours else cfg.align.use_z_ratio)
+    A = extract_objects(cs, dataclasses.replace(ocfg, min_voxel_points=max(2, ocfg.min_voxel_points)))
+    B = extract_objects(cl, ocfg)
+    n_dyn = 0
+    if others and solver != "oba":
+        motion = point_motion(ref_sweep.points, others, T_others)
+        dyn = dynamic_objects(B.point_labels, motion, len(B), cfg.dynamic_dist_m)
+        n_dyn = int(dyn.sum())
+        B = B.subset(~dyn)
+    tm["objects"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    metrics = {"sfm_reprojection_px": sfm.reprojection_px, "sfm_t1_reprojection_px": sfm.t1_reprojection_px,
+               "sfm_points": int(sfm.points.shape[0]), "dense_points": int(dense.shape[0]),
+               "scale_m_per_unit": sfm.unit_m, "scale_rel_sigma": scale_rel, "objects_camera": len(A),
+               "objects_lidar": len(B), "objects_dynamic_removed": n_dyn, "speed_mps": speed, **metrics_pre}
+    if ours:
+        # rotation from the ground normals and the direction of travel seen by both sensors (no guess);
+        # translation by bird's-eye occupancy cross-correlation
+        c = sfm.centres()
+        m_c = Ls[:3, :3] @ (c[-1] - c[0])
+        p_rel = np.array([(inv_T(poses[jr]) @ P)[:3, 3] for P in P_img])
+        m_l = Ll[:3, :3] @ (p_rel[-1] - p_rel[0])
+        yaw0 = motion_yaw(m_c, m_l)
+        metrics["motion_yaw_deg"] = math.degrees(yaw0)
+        try:
+            # the paper's Hough vote, restricted to yaws near the motion-derived one
+            h = hough_align(A, B, dataclasses.replace(acfg, yaw_window_deg=cfg.motion_yaw_window_deg),
+                            yaw_center_rad=yaw0)
+            T_oba_lev = h.T
+            metrics.update({"objects_matched": h.n_matches, "hough_votes": h.votes})
+        except CalibError as e:
+            t_bev, ratio = bev_translation(cs[~A.ground], cl[~B.ground], yaw0, radius_m=cfg.align.search_radius_m)
+            T_oba_lev = make_T(rz(yaw0), t_bev)
+            metrics.update({"bev_peak_ratio": ratio, "hough_refused": str(e)})
+    else:
+        h: HoughResult = hough_align(A, B, acfg)
+        T_oba_lev = h.T
+        metrics.update({"objects_matched": h.n_matches, "hough_votes": h.votes})
+    diag.T_oba = inv_T(Ls) @ T_oba_lev @ Ll @ T_sweep_img
+    # -- ICP
+    near = np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m + 10.0
+    src = voxel_down(cl[near], 0.1)
+    tree = cKDTree(cs)
+    nrm, _ = estimate_normals(cs, tree)
+    T_lev = T_oba_lev
+    icp = None
+    if solver != "oba":
+        icp = icp_point_to_plane(src, cs, T_oba_lev, acfg, with_scale=ours, dst_tree=tree, dst_normals=nrm)
+        if ours and abs(icp.scale - 1.0) > 5 * max(scale_rel, 0.01):
+            # the scale wandered off (degenerate overlap): keep the odometry scale
+            icp = icp_point_to_plane(src, cs, T_oba_lev, acfg, with_scale=False, dst_tree=tree, dst_normals=nrm)
+        T_lev = icp.T
+    scale_icp = icp.scale if icp is not None else 1.0
+    T_chain = inv_T(Ls) @ T_lev @ Ll
+    # ICP geometry in camera coordinates: q_cam = Ls^-1 (s (T_lev Ll p)); pixels invariant to s about the
+    # camera centre only if Ls keeps the camera at the origin (rotation + z shift): undo the shift
+    Ls_inv = inv_T(Ls)
+
+    def chain(p):
+        q = transform_points(T_lev @ Ll, p) * scale_icp
+        return transform_points(Ls_inv, q)
+
+    diag.T_icp = T_chain @ T_sweep_img
+    tm["align"] = time.perf_counter() - t3
+    # -- gates: partial Hausdorff distance on the registered overlap
+    reg = chain(lid[np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m])
+    regl = transform_points(Ls, reg)
+    d, nn = tree.query(regl, k=1, distance_upper_bound=0.5)
+    ok = np.isfinite(d)
+    if ok.sum() < 50:
+        raise CalibError(f"gate failed: only {int(ok.sum())} LiDAR points lie on the camera cloud after "
+                         "registration; calibration rejected")
+    dist_pl = np.abs(np.einsum("ij,ij->i", regl[ok] - cs[nn[ok]], nrm[nn[ok]]))
+    haus = float(np.quantile(dist_pl, cfg.hausdorff_quantile))
+    metrics["hausdorff_m"] = haus
+    metrics["overlap_points"] = int(ok.sum())
+    # -- final PnP (the paper: object centroids through the chain; ours: every overlapping point)
+    t4 = time.perf_counter()
+    if solver in ("paper", "ours"):
+        if solver == "paper":
+            pl = inv_T(Ll) @ np.concatenate([B.centroids.T, np.ones((1, len(B)))])
+            pts = pl[:3].T
+        else:
+            pts = lid[np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m][ok]
+            if pts.shape[0] > 3000:
+                pts = pts[rng.choice(pts.shape[0], 3000, replace=False)]
+        qc = chain(pts)
+        uv, z = _ideal_project(cam.K, np.eye(4), qc)
+        vis = (z > 0.5) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        if vis.sum() >= 6:
+            T_pnp, res_px = final_pnp(pts[vis], uv[vis], cam, T_chain)
+            metrics["pnp_points"] = int(vis.sum())
+            metrics["pnp_residual_px"] = float(np.sqrt(np.mean(res_px ** 2)))
+            T_final_sweep = T_pnp
+        else:
+            metrics["pnp_points"] = int(vis.sum())
+            T_final_sweep = T_chain
+    else:
+        T_final_sweep = T_chain
+    T_final = T_final_sweep @ T_sweep_img
+    diag.T_final = T_final
+    tm["pnp"] = time.perf_counter() - t4
+    tm["total"] = time.perf_counter() - t0
+    metrics["runtime_s"] = tm["total"]
+    # -- covariance: ICP information (levelled camera-cloud space) mapped to the camera frame,
+    # inflated for correlated residuals, plus the scale and the clock priors
+    cov = np.zeros((6, 6))
+    if icp is not None:
+        Hs = icp.H[:6, :6] if icp.H.shape[0] >= 6 else np.eye(6)
+        sig2 = icp.residual_sigma_m ** 2
+        try:
+            C_lev = np.linalg.inv(Hs) * sig2 * cfg.covariance_inflation
+        except np.linalg.LinAlgError:
+            C_lev = np.eye(6)
+        Rs, ts = Ls[:3, :3], Ls[:3, 3]
+        A_ = np.zeros((6, 6))
+        A_[:3, :3] = Rs.T
+        A_[3:, :3] = -skew(T_chain[:3, 3] + Rs.T @ ts) @ Rs.T
+        A_[3:, 3:] = Rs.T
+        cov += A_ @ C_lev @ A_.T
+    else:
+        cov[:3, :3] += np.eye(3) * math.radians(cfg.align.yaw_step_deg) ** 2
+        cov[3:, 3:] += np.eye(3) * (cfg.align.trans_step_m / 2) ** 2
+    # scale: a relative error e moves the registered translation by about e * |t|
+    tcam = T_final[:3, 3]
+    cov[3:, 3:] += np.outer(tcam, tcam) * scale_rel ** 2 + np.eye(3) * (scale_rel * 0.5) ** 2 * 0.01
+    # clock: translation along the driving direction (LiDAR x motion mapped into the camera)
+    vdir = T_final[:3, :3] @ (link.T[:3, 3] / max(np.linalg.norm(link.T[:3, 3]), 1e-9))
+    cov[3:, 3:] += np.outer(vdir, vdir) * (speed * cfg.time_offset_sigma_s) ** 2
+    metrics["icp_rms_m"] = float(icp.rms_m) if icp is not None else float("nan")
+    metrics["icp_scale"] = float(scale_icp)
+    diag.metrics = metrics
+    if haus > cfg.max_hausdorff_m and solver != "oba":
+        raise CalibError(f"gate failed: Hausdorff distance {haus * 100:.1f} cm between the registered clouds > "
+                         f"{cfg.max_hausdorff_m * 100:.1f} cm; calibration rejected")
+    diag.metrics = metrics
+    return T_final, cov, metrics
+
+
+__all__ = ["SOLVERS", "TargetlessCalibrator", "TargetlessConfig", "WindowDiagnostics", "calibrate_window",
+           "deskew_sweep"]

@@ -1,0 +1,116 @@
+"""targetless: objects, 4D Hough alignment and ICP on synthetic street object sets."""
+import numpy as np
+import pytest
+
+from lidar_cam_calib.core.errors import CalibError
+from lidar_cam_calib.core.geometry import make_T, transform_points
+from lidar_cam_calib.targetless.align import AlignConfig, hough_align, icp_point_to_plane, rz
+from lidar_cam_calib.targetless.objects import (LINEAR, ObjectConfig, extract_objects, ground_plane,
+                                                level_rotation)
+
+
+def _cylinder(rng, c, r, h, n):
+    a = rng.uniform(0, 2 * np.pi, n)
+    z = rng.uniform(0, h, n)
+    return np.stack([c[0] + r * np.cos(a), c[1] + r * np.sin(a), z], 1)
+
+
+def _box(rng, c, size, n):
+    p = rng.uniform(-0.5, 0.5, (n, 3)) * size
+    ax = rng.integers(0, 3, n)
+    p[np.arange(n), ax] = np.sign(p[np.arange(n), ax]) * size[ax] / 2
+    p[:, 0] += c[0]
+    p[:, 1] += c[1]
+    p[:, 2] += size[2] / 2
+    return p
+
+
+def street(rng, n_obj=18, density=1.0):
+    """Ground + poles and boxes at random places within 14 m; returns points and object centres."""
+    pts = [np.concatenate([rng.uniform(-15, 15, (int(6000 * density), 2)),
+                           rng.normal(0, 0.01, (int(6000 * density), 1))], 1)]
+    centres = []
+    while len(centres) < n_obj:
+        c = rng.uniform(-13, 13, 2)
+        if any(np.hypot(*(c - q)) < 2.0 for q in centres) or not 3 < np.hypot(*c) < 13:
+            continue
+        centres.append(c)
+        if rng.random() < 0.6:
+            pts.append(_cylinder(rng, c, rng.uniform(0.08, 0.2), rng.uniform(2.5, 6), int(300 * density)))
+        else:
+            pts.append(_box(rng, c, rng.uniform([0.4, 0.4, 0.6], [1.6, 1.2, 1.5]), int(400 * density)))
+    return np.concatenate(pts), np.array(centres)
+
+
+def test_objects_found_and_poles_linear():
+    rng = np.random.default_rng(1)
+    pts, centres = street(rng)
+    objs = extract_objects(pts, ObjectConfig())
+    assert len(objs) == len(centres)
+    d = np.linalg.norm(objs.centroids[:, None, :2] - centres[None], axis=2).min(axis=0)
+    assert np.all(d < 0.3)
+    assert np.sum(objs.shape == LINEAR) >= 5
+    assert np.all(objs.point_labels[objs.ground] == -1)
+
+
+def test_vertical_split_separates_crown_from_car():
+    rng = np.random.default_rng(2)
+    car = _box(rng, np.array([5.0, 0.0]), np.array([1.5, 1.5, 1.4]), 500)
+    crown = rng.normal([5.0, 0.0, 4.0], 0.4, (400, 3))
+    ground = np.concatenate([rng.uniform(-10, 10, (3000, 2)), np.zeros((3000, 1))], 1)
+    objs = extract_objects(np.concatenate([ground, car, crown]), ObjectConfig())
+    assert len(objs) == 2
+    assert sorted(np.round(objs.centroids[:, 2]).tolist()) == [1.0, 4.0]
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_hough_recovers_any_yaw_without_guess(seed):
+    rng = np.random.default_rng(seed)
+    pts, _ = street(rng)
+    yaw = rng.uniform(-np.pi, np.pi)
+    t = np.array([*rng.uniform(-2, 2, 2), rng.uniform(-0.5, 0.5)])
+    T = make_T(rz(yaw), t)
+    # target: a noisy subset (a camera sees a wedge), denser; source: all of it
+    tgt = transform_points(T, pts + rng.normal(0, 0.02, pts.shape))
+    wedge = np.abs(np.arctan2(pts[:, 1], pts[:, 0]) - 0.3) < 1.3
+    A = extract_objects(tgt[wedge], ObjectConfig(), center_xy=t[:2], ground_z=t[2])
+    B = extract_objects(pts, ObjectConfig())
+    h = hough_align(A, B, AlignConfig())
+    dyaw = np.degrees(np.angle(np.exp(1j * (h.yaw_rad - yaw))))
+    assert abs(dyaw) < 1.0
+    assert np.linalg.norm(h.t - t) < 0.25
+    icp = icp_point_to_plane(pts, tgt[wedge], h.T)
+    assert np.degrees(np.linalg.norm(
+        np.array([icp.T[2, 1] - T[2, 1], icp.T[0, 2] - T[0, 2], icp.T[1, 0] - T[1, 0]]))) < 0.3
+    assert np.linalg.norm(icp.T[:3, 3] - t) < 0.05
+
+
+def test_icp_with_scale():
+    rng = np.random.default_rng(7)
+    pts, _ = street(rng)
+    T = make_T(rz(0.4), np.array([0.5, -0.3, 0.1]))
+    tgt = 1.03 * transform_points(T, pts)
+    Tn = T.copy()
+    Tn[:3, 3] += [0.2, -0.1, 0.05]
+    icp = icp_point_to_plane(pts, tgt, Tn, with_scale=True)
+    assert abs(icp.scale - 1.03) < 0.005
+    assert np.linalg.norm(icp.T[:3, 3] - T[:3, 3]) < 0.03
+
+
+def test_levelling_and_ground_plane():
+    rng = np.random.default_rng(8)
+    pts, _ = street(rng)
+    R = rz(0.3) @ np.array([[1, 0, 0], [0, np.cos(0.2), -np.sin(0.2)], [0, np.sin(0.2), np.cos(0.2)]])
+    q = pts @ R.T + [0, 0, -1.7]
+    n, d = ground_plane(q, rng, up_hint=np.array([0, 0, 1.0]))
+    L = level_rotation(n)
+    assert np.allclose(L @ n, [0, 0, 1])
+    assert abs(np.degrees(np.arccos(n @ R[:, 2]))) < 0.5
+
+
+def test_too_few_objects_is_refused():
+    rng = np.random.default_rng(9)
+    pts, _ = street(rng, n_obj=2)
+    A = extract_objects(pts, ObjectConfig())
+    with pytest.raises(CalibError, match="compatible object pairs|matches only"):
+        hough_align(A, A, AlignConfig())
