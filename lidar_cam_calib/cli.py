@@ -131,6 +131,19 @@ def _cmd_simulate(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_kitti2bag(a: argparse.Namespace) -> int:
+    from .io.bag import BagError
+    from .io.kitti import kitti_to_bag
+
+    try:
+        bag, truth = kitti_to_bag(a.kitti_dir, a.out, overwrite=a.overwrite, max_frames=a.max_frames)
+    except (BagError, OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {bag}\ntruth {truth}")
+    return 0
+
+
 def _config_path(*parts: str) -> str:
     here = os.path.dirname(os.path.abspath(__file__))
     p = os.path.join(here, "..", "config", *parts)
@@ -153,7 +166,7 @@ def _benches() -> dict:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lidar-cam-calib", description=__doc__, epilog=EXIT_CODES,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="cmd", required=True, metavar="{calibrate,simulate,bench}")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="{calibrate,simulate,kitti2bag,bench}")
     names = list(methods.METHODS)
     listing = "\n".join(f"  {n:<11} {s.summary}" for n, s in methods.METHODS.items())
 
@@ -182,6 +195,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int)
     s.add_argument("--overwrite", action="store_true", help="replace an existing bag of the same name")
 
+    k = sub.add_parser("kitti2bag", help="turn a KITTI raw drive into an MCAP bag and a truth YAML",
+                       description="A KITTI raw folder (image_02/data, velodyne_points/data, calib files) -> "
+                                   "OUT/<name>/ with PointCloud2, Image, CameraInfo (P_rect_02) at 10 Hz and "
+                                   "truth.yaml with T_camera_lidar to the rectified cam2.")
+    k.add_argument("kitti_dir")
+    k.add_argument("out")
+    k.add_argument("--max-frames", type=int)
+    k.add_argument("--overwrite", action="store_true")
+
     benches = _benches()
     b = sub.add_parser("bench", add_help=False, help="benchmarks: " + ", ".join(benches),
                        description="Run a benchmark; `lidar-cam-calib bench NAME --help` shows its options.\n"
@@ -208,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if a.cmd == "calibrate":
             return _cmd_calibrate(a)
+        if a.cmd == "kitti2bag":
+            return _cmd_kitti2bag(a)
         return _cmd_simulate(a)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
