@@ -100,8 +100,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"lrf node, scan {a.scan_hz:.0f} Hz + depth {a.depth_hz:.0f} Hz, {a.poses} poses held "
               f"{a.hold_s:.1f} s: {st.get('inputs_processed', 0)} inputs, {st.get('observations', 0)} observations, "
               f"fitted: {bool(st.get('sigma_deg_mm'))}")
-        print(f"max input callback delay (stamp -> callback start, transport included): "
-              f"{st.get('max_input_delay_ms', float('nan')):.1f} ms")
+        p50, p99 = st.get("input_delay_ms_p50_p99", [float("nan")] * 2)
+        print(f"input callback delay (stamp -> callback start, transport included): median {p50:.1f} ms, "
+              f"99th percentile {p99:.1f} ms, max {st.get('max_input_delay_ms', float('nan')):.1f} ms")
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

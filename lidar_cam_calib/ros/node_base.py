@@ -24,6 +24,7 @@ Services: ~/recalibrate, ~/capture (std_srvs/Trigger).
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import json
 import math
@@ -74,7 +75,6 @@ class _Param:
     default: Any
     meta: dict
     kind: str           # 'base' | 'config' | 'input' | 'node'
-    path: tuple = ()    # config field path, e.g. ('board', 'width_m')
 
 
 @dataclasses.dataclass
@@ -175,6 +175,7 @@ class CalibNodeBase(Node):
         self._busy = ""
         self.max_input_delay_ms = 0.0
         self.dropped_busy = 0                       # live frames dropped while the worker was busy
+        self._delays: collections.deque = collections.deque(maxlen=2000)
 
         for name, default, meta in BASE_PARAMS:
             self._declare(_Param(name, default, meta, "base"))
@@ -232,10 +233,6 @@ class CalibNodeBase(Node):
     def after_fit(self) -> None:
         """Worker, after every fit attempt (adopted or not)."""
 
-    def input_frames(self, frame: Any) -> dict:
-        """Override: frame ids {name: (parent, child)} are taken from the result."""
-        return {}
-
     def render_overlays(self, frame: Any, cal: CalibrationSet) -> dict:
         """Override: {camera name or '': bgr image} drawn with the result."""
         return {}
@@ -271,7 +268,7 @@ class CalibNodeBase(Node):
                 continue  # None cannot be a ROS parameter value
             meta = dict(f.metadata) if "help" in f.metadata else _meta(f"{f.name} (undocumented)")
             name = "_".join(path + (f.name,))
-            self._declare(_Param(name, v, meta, "config", path + (f.name,)))
+            self._declare(_Param(name, v, meta, "config"))
 
     def declare_param(self, name: str, default: Any, help: str, **kw: Any) -> Any:
         """Declare a node parameter described like a config field."""
@@ -364,7 +361,6 @@ class CalibNodeBase(Node):
     # ------------------------------------------------------------------ inputs
     def _guarded(self, inp: _Input) -> Callable[[Any], None]:
         def cb(msg: Any) -> None:
-            t0 = time.monotonic()
             try:
                 self._note_delay(msg)
                 inp.callback(msg)
@@ -378,7 +374,6 @@ class CalibNodeBase(Node):
                 if self.pub_ack is not None:
                     self.wait_idle()
                     self.pub_ack.publish(UInt64(data=self._input_count))
-                self._callback_ms = 1000.0 * (time.monotonic() - t0)
         return cb
 
     def _note_delay(self, msg: Any) -> None:
@@ -392,6 +387,7 @@ class CalibNodeBase(Node):
             return
         if 0.0 <= d < 10_000.0:
             self.max_input_delay_ms = max(self.max_input_delay_ms, d)
+            self._delays.append(d)
 
     def check_stamp(self, stream: str, t: float, content: Any) -> None:
         """Refuse a stamp that goes back (out of order) or repeats with other
@@ -589,7 +585,8 @@ class CalibNodeBase(Node):
             if old.method != cal.method:
                 return False, (f"{self._where()} holds a {old.method!r} calibration, this is {cal.method!r}: "
                                "kept; use another output_path or force_overwrite:=true")
-            if old.frame_pairs() != cal.frame_pairs() and not self._in_effect_ours:
+            covers = set(old.frame_pairs().items()) <= set(cal.frame_pairs().items())  # may add cameras
+            if not covers and not self._in_effect_ours:
                 return False, (f"{self._where()} holds the calibration of {_pairs_text(old)}, this one is for "
                                f"{_pairs_text(cal)}: kept; use another output_path or force_overwrite:=true")
             if not self._in_effect_ours and not _no_worse(cal, old):
@@ -681,6 +678,9 @@ class CalibNodeBase(Node):
                         "type": _type_name(i.msg_type)} for i in self._inputs]
         if self.pub_ack is None:
             d["max_input_delay_ms"] = round(self.max_input_delay_ms, 2)
+            if self._delays:
+                q = np.percentile(np.fromiter(self._delays, float), [50, 99])
+                d["input_delay_ms_p50_p99"] = [round(float(q[0]), 2), round(float(q[1]), 2)]
         eff = self.in_effect
         d["in_effect"] = None if eff is None else {
             "source": self.in_effect_source, "sigma": _sigmas(eff), "frames": _pairs_text(eff)}
@@ -839,6 +839,7 @@ def run_node(node_cls: type, args: list[str] | None = None) -> int:
     with one line naming it (exit 2), never a traceback."""
     import sys
 
+    sys.setswitchinterval(0.0005)  # input callbacks get the GIL back quickly while the worker computes
     rclpy.init(args=args)  # installs rclpy's SIGINT and SIGTERM handlers: both wake the executor
     node = None
     code = 0
