@@ -36,11 +36,12 @@ def test_rejections_have_reasons(monkeypatch):
     class SF:  # minimal stand-ins carrying what make_observation needs
         pass
 
-    def fake_make(sf, df, stamp, sigma):
+    def fake_make(sf, df, stamp, sigma=None):
         o = next(feats)
         o.stamp_s = stamp
         return o
-    monkeypatch.setattr(C, "extract_scan_features", lambda f, cfg: type("S", (), {"corners_m": obs[int(f.stamp_s) % 3].corners_laser_m})())
+    monkeypatch.setattr(C, "extract_scan_features",
+                        lambda f, cfg: type("S", (), {"corners_m": obs[int(f.stamp_s) % 3].corners_laser_m})())
     monkeypatch.setattr(C, "extract_depth_features", lambda f, cfg: None)
     monkeypatch.setattr(C, "make_observation", fake_make)
     assert cal.add(_frame(3.0)).accepted
@@ -65,7 +66,10 @@ def test_end_to_end_on_sim():
     error consistent with the reported sigma."""
     sim = pytest.importorskip("lidar_cam_calib.sim.lrf_world")
     from lidar_cam_calib.sim.scenario import default_scenario
-    sc = default_scenario(); sc.poses.n_poses = 6
+    sc = default_scenario()
+    sc.poses.n_poses = 6
+    sc.camera.right_camera = False
+    sc.camera.render_color = False
     run = sim.simulate(sc, np.random.default_rng(1))
     cal = C.LrfCalibrator()
     verdicts = [cal.add(LrfFrame.from_sim(o)) for o in run.observations]
@@ -75,3 +79,37 @@ def test_end_to_end_on_sim():
     assert er < 0.5 and et < 10.0, (er, et)
     rs, ts = res.sigma()
     assert er < 4 * rs and et < 4 * ts, (er, et, rs, ts)
+
+
+def test_stop_uses_all_frames_and_survives_a_bad_first_frame():
+    from lidar_cam_calib.lrf.stop import StopAccumulator
+    from lidar_cam_calib.sim.scenario import default_scenario
+    sim = pytest.importorskip("lidar_cam_calib.sim.lrf_family")
+    sc = default_scenario()
+    sc.poses.n_poses = 1
+    sc.camera.right_camera = False
+    sc.camera.render_color = False
+    stops, truth, _ = sim.simulate_stops(sc, 4, np.random.default_rng(3))
+    frames = [LrfFrame.from_sim(o) for o in stops[0].frames]
+    bad = LrfFrame.from_sim(stops[0].frames[0])
+    bad.depth_m = np.full_like(bad.depth_m, np.nan)   # first frame: no depth at all
+    acc = StopAccumulator()
+    v = acc.add(bad)
+    assert not v.accepted
+    for f in frames[1:]:
+        acc.add(f)
+    st = acc.finish()
+    assert st.frames_used == 4 and acc.n == 4
+    # a moved scene restarts the stop
+    moved = LrfFrame.from_sim(stops[0].frames[0])
+    moved.scan_ranges_m = moved.scan_ranges_m + 0.5
+    acc.add(moved)
+    assert acc.n == 1 and acc.restarts == 1
+    # the calibrator's stop path: one observation per stop, reason when the whole stop fails
+    cal = C.LrfCalibrator()
+    assert cal.add_stop(frames).accepted and len(cal.observations) == 1
+    nothing = LrfFrame.from_sim(stops[0].frames[1])
+    nothing.depth_m = np.full_like(nothing.depth_m, np.nan)
+    v = cal.add_stop([nothing, nothing])
+    assert not v.accepted and "no valid depth pixels" in v.reason
+    assert cal.status()["stops_refused"] == 1

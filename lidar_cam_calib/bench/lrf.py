@@ -7,24 +7,43 @@ Two data sources:
 * the simulator (lidar_cam_calib.sim) -- full frames through the real
   feature extraction (``run_bench``).
 
-``main(argv)``: ``--observations N --seed S --repeats K --json FILE --sweep``.
+``main(argv)``: ``--observations N --seed S --repeats K --json FILE --sweep``;
+``--family --seeds N [--stops K] [--frames F]``: scenes drawn from the seed
+(:mod:`lidar_cam_calib.sim.lrf_family`), every stop through the stop
+accumulator, paper vs ours on identical features beside the scene's
+Cramer-Rao bound, Mahalanobis^2 of ours, per-seed rows and aggregate;
+``--family --detection``: the single-frame detection rate.
 """
 from __future__ import annotations
 
 import argparse
-import os
+import dataclasses
 import json
 import math
+import os
 import sys
 import time
 
 import numpy as np
 
-from ..core.geometry import R_BODY_OPTICAL, R_from_rpy, inv_T, make_T, pose_errors
-from ..lrf.features import (BoardModel, FeatureConfig, corner_covariance, make_observation)
 from ..core.fitting import fit_line_2d_lsq, fit_plane_lsq, intersect_lines_2d
-from ..lrf.solvers import (LrfObservation, OursOptions, PlaneStats, point_to_line_error_m,
-                      reject_outlier_observations, resolve_assignment, solve_ours, solve_paper)
+from ..core.geometry import R_BODY_OPTICAL, R_from_rpy, inv_T, make_T, pose_errors
+from ..lrf.features import (
+    BoardModel,
+    FeatureConfig,
+    corner_covariance,
+    make_observation,
+)
+from ..lrf.solvers import (
+    LrfObservation,
+    OursOptions,
+    PlaneStats,
+    point_to_line_error_m,
+    reject_outlier_observations,
+    resolve_assignment,
+    solve_ours,
+    solve_paper,
+)
 
 
 # ----------------------------------------------------------------------------
@@ -214,10 +233,14 @@ def _strip(d: dict) -> dict:
 # Simulator bench
 # ----------------------------------------------------------------------------
 def _sim_observations(n: int, seed: int, scenario=None, right: bool = False, cfg=None):
+    from ..lrf.features import (
+        FeatureError,
+        extract_depth_features,
+        extract_scan_features,
+    )
+    from ..lrf.frame import LrfFrame
     from ..sim.lrf_world import simulate
     from ..sim.scenario import load_scenario
-    from ..lrf.features import FeatureError, extract_depth_features, extract_scan_features
-    from ..lrf.frame import LrfFrame
     sc = load_scenario(scenario)
     sc.poses.n_poses = max(n, 2)
     run = simulate(sc, np.random.default_rng(seed))
@@ -291,6 +314,196 @@ def run_bench(observations: int, seed: int, scenario=None, source: str = "sim") 
     return res
 
 
+# ----------------------------------------------------------------------------
+# Family bench: scenes drawn from the seed (lidar_cam_calib.sim.lrf_family)
+# ----------------------------------------------------------------------------
+def _true_noise_observations(obs, laser_sigma_m: float, depth_k: float, frames: int, quant_m: float,
+                             scans: int | None = None):
+    """Copies of ``obs`` whose noise model is the simulator's true one (for the
+    Cramer-Rao bound): laser sigma / sqrt(frames); each plane's variance factor
+    = (true sigma / the sigma its weights assumed)^2 at the plane's centroid."""
+    out = []
+    for o in obs:
+        st = []
+        for ps in o.plane_stats:
+            z = float(ps.centroid[2])
+            true = math.sqrt((depth_k * z * z) ** 2 / frames + quant_m ** 2 / frames)
+            used = float(o.depth_noise.sigma(z)) if o.depth_noise is not None else true
+            st.append(dataclasses.replace(ps, variance_factor=(true / used) ** 2))
+        out.append(dataclasses.replace(o, laser_sigma_m=laser_sigma_m / math.sqrt(scans or frames),
+                                       plane_stats=tuple(st)))
+    return out
+
+
+def _rms_deg_mm(cov_left: np.ndarray) -> tuple[float, float]:
+    """Expected error magnitudes sqrt(trace) of the rotation / translation blocks."""
+    d = np.clip(np.diag(cov_left), 0.0, None)
+    return float(np.degrees(np.sqrt(d[:3].sum()))), float(1000.0 * np.sqrt(d[3:].sum()))
+
+
+def run_family_seed(seed: int, n_stops: int | None = None, frames_per_stop: int | None = None,
+                    stack_scans: bool = True) -> dict:
+    """One scene of the family: every stop through the StopAccumulator (all its
+    frames), then paper and ours on identical features; errors, Mahalanobis^2
+    of ours against its covariance, and the scene's Cramer-Rao bound."""
+    from ..lrf.calibrator import LrfCalibrator, LrfConfig
+    from ..lrf.frame import LrfFrame
+    from ..lrf.solvers import covariance_left, information_at, mahalanobis2
+    from ..sim.lrf_family import draw_scenario, simulate_stops
+    sc, fd = draw_scenario(seed, n_stops)
+    F = int(frames_per_stop or fd.frames_per_stop)
+    NS = max(F, fd.scans_per_stop) if stack_scans else F
+    row = {"seed": seed, "stops": sc.poses.n_poses, "frames_per_stop": F, "apex": fd.apex,
+           "camera": f"{sc.camera.width_px}x{sc.camera.height_px} fx {sc.camera.fx_px:.0f} "
+                     f"k {fd.depth_k_per_m:.4f} {sc.camera.depth_encoding}",
+           "laser": f"{sc.laser.resolution_deg:.2f} deg {1000 * fd.laser_sigma_m:.0f} mm"}
+    row["scans_per_stop"] = NS
+    stops, truth, _world = simulate_stops(sc, F, np.random.default_rng(np.random.SeedSequence([7, seed])),
+                                          scans_per_stop=NS)
+    board = BoardModel.from_config(sc.board)
+    cal = LrfCalibrator(LrfConfig(board=board))   # priors only: the noise comes from the data
+    t_feat, reasons = [], []
+    for st in stops:
+        t0 = time.perf_counter()
+        v = cal.add_stop([LrfFrame.from_sim(o) for o in st.frames], st.scans)
+        t_feat.append(time.perf_counter() - t0)
+        if not v.accepted:
+            reasons.append(v.reason)
+    row["accepted"] = len(cal.observations)
+    row["refusals"] = reasons
+    row["ms_per_frame"] = 1000.0 * float(np.sum(t_feat)) / max(1, F * len(stops))
+    T_true = truth.T_camera_laser
+    if len(cal.observations) < 2:
+        row["error"] = f"only {len(cal.observations)} observations"
+        return row
+    opt = cal.solver_options()
+    obs, _flags = resolve_assignment(cal.observations)
+    obs, dropped, _ = reject_outlier_observations(obs, options=opt)
+    row["dropped"] = len(dropped)
+    t0 = time.perf_counter()
+    _, _, info = solve_paper(obs)
+    t_paper = time.perf_counter() - t0
+    er, et = pose_errors(info["T"], T_true)
+    row["paper"] = {"rot_deg": er, "trans_mm": et, "runtime_s": t_paper}
+    t0 = time.perf_counter()
+    sol = solve_ours(obs, options=opt)
+    t_ours = time.perf_counter() - t0
+    er, et = pose_errors(sol.T, T_true)
+    cov = covariance_left(sol.covariance, sol.T[:3, :3])
+    sr, stt = _rms_deg_mm(cov)
+    row["ours"] = {"rot_deg": er, "trans_mm": et, "runtime_s": t_ours, "sigma_rot_deg": sr, "sigma_trans_mm": stt,
+                   "mahalanobis2": mahalanobis2(sol.T, cov, T_true)}
+    quant = 0.001 / math.sqrt(12.0) if sc.camera.depth_encoding == "16UC1" else 0.0
+    tobs = _true_noise_observations(obs, fd.laser_sigma_m, fd.depth_k_per_m, F, quant, NS)
+    crb_opt = dataclasses.replace(opt, laser_sigma_floor_m=0.0, plane_sigma_floor_m=0.0, laser_sigma_m=None)
+    info_true = information_at(tobs, T_true, crb_opt)
+    try:
+        crb = covariance_left(np.linalg.inv(info_true), T_true[:3, :3])
+        row["crb"] = dict(zip(("rot_deg", "trans_mm"), _rms_deg_mm(crb)))
+    except np.linalg.LinAlgError:
+        row["crb"] = {"rot_deg": float("nan"), "trans_mm": float("nan")}
+    return row
+
+
+def detection_rate(seeds: int, seed0: int, min_face_px: int = 2000) -> dict:
+    """Single frames (no averaging) of family scenes: in how many of the frames
+    whose every face shows >= ``min_face_px`` pixels is the board found in the
+    depth image and in the scan; per-frame feature time."""
+    from ..lrf.features import FeatureError, extract_depth_features, extract_scan_features
+    from ..lrf.frame import LrfFrame
+    from ..sim.lrf_family import draw_scenario, simulate_stops
+    n = ok_d = ok_s = 0
+    times, fails = [], []
+    for k in range(seeds):
+        sc, _fd = draw_scenario(seed0 + k)
+        try:
+            stops, _truth, _ = simulate_stops(sc, 1, np.random.default_rng(np.random.SeedSequence([11, seed0 + k])))
+        except RuntimeError:
+            continue
+        cfg = FeatureConfig(board=BoardModel.from_config(sc.board))
+        for st in stops:
+            if min(st.visibility["camera"].values()) < min_face_px:
+                continue
+            n += 1
+            fr = LrfFrame.from_sim(st.frames[0])
+            t0 = time.perf_counter()
+            try:
+                extract_depth_features(fr, cfg)
+                ok_d += 1
+            except FeatureError as e:
+                fails.append(f"seed {seed0 + k}: {e}")
+            try:
+                extract_scan_features(fr, cfg)
+                ok_s += 1
+            except FeatureError as e:
+                fails.append(f"seed {seed0 + k}: {e}")
+            times.append(time.perf_counter() - t0)
+    out = {"frames": n, "depth_found": ok_d, "scan_found": ok_s,
+           "depth_rate": ok_d / max(n, 1), "scan_rate": ok_s / max(n, 1),
+           "ms_per_frame_median": 1000 * float(np.median(times)) if times else float("nan"),
+           "ms_per_frame_p90": 1000 * float(np.percentile(times, 90)) if times else float("nan"),
+           "failures": fails}
+    print(f"single frames with every face >= {min_face_px} px: {n}; board found in depth {ok_d} "
+          f"({100 * out['depth_rate']:.1f} %), in the scan {ok_s} ({100 * out['scan_rate']:.1f} %); "
+          f"features {out['ms_per_frame_median']:.0f} ms/frame median, {out['ms_per_frame_p90']:.0f} p90")
+    for f in fails[:20]:
+        print("  " + f)
+    return out
+
+
+def _pct(v, q):
+    v = [x for x in v if np.isfinite(x)]
+    return float(np.percentile(v, q)) if v else float("nan")
+
+
+def family_main(seeds: int, seed0: int, n_stops: int | None, frames: int | None, json_path: str | None) -> dict:
+    rows = []
+    print(f"{'seed':>5} {'stops':>5} {'acc':>4} {'F':>2} {'apex':>8} {'p_rot':>6} {'p_mm':>6} {'o_rot':>6} "
+          f"{'o_mm':>6} {'crb_rot':>7} {'crb_mm':>6} {'maha2':>7} {'ms/fr':>6}  camera / laser")
+    for k in range(seeds):
+        s = seed0 + k
+        try:
+            r = run_family_seed(s, n_stops, frames)
+        except RuntimeError as e:  # a scene the pose sampler could not build
+            r = {"seed": s, "error": f"scene: {e}", "stops": 0, "accepted": 0}
+        rows.append(r)
+        if "ours" in r:
+            p, o, c = r["paper"], r["ours"], r["crb"]
+            print(f"{s:>5} {r['stops']:>5} {r['accepted']:>4} {r['frames_per_stop']:>2} {r['apex']:>8} "
+                  f"{p['rot_deg']:6.3f} {p['trans_mm']:6.2f} {o['rot_deg']:6.3f} {o['trans_mm']:6.2f} "
+                  f"{c['rot_deg']:7.3f} {c['trans_mm']:6.2f} {o['mahalanobis2']:7.2f} {r['ms_per_frame']:6.1f}  "
+                  f"{r['camera']} / {r['laser']}", flush=True)
+        else:
+            print(f"{s:>5} {r.get('stops', 0):>5} {r.get('accepted', 0):>4}  {r.get('error', '')}", flush=True)
+    ok = [r for r in rows if "ours" in r]
+    agg = {"seeds": seeds, "with_result": len(ok),
+           "stops_accepted_fraction": float(sum(r.get("accepted", 0) for r in rows)
+                                            / max(1, sum(r.get("stops", 0) for r in rows)))}
+    for key in ("paper", "ours", "crb"):
+        for m in ("rot_deg", "trans_mm"):
+            v = [r[key][m] for r in ok]
+            agg[f"{key}_{m}_median"] = _pct(v, 50)
+            agg[f"{key}_{m}_p90"] = _pct(v, 90)
+    m2 = [r["ours"]["mahalanobis2"] for r in ok]
+    agg["mahalanobis2_mean"] = float(np.mean(m2)) if m2 else float("nan")
+    agg["mahalanobis2_median"] = _pct(m2, 50)
+    agg["mahalanobis2_above_16.8_fraction"] = float(np.mean(np.array(m2) > 16.8)) if m2 else float("nan")
+    agg["ms_per_frame_median"] = _pct([r["ms_per_frame"] for r in ok], 50)
+    print("aggregate: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in agg.items()))
+    if ok:
+        pr, pt = agg["paper_rot_deg_median"], agg["paper_trans_mm_median"]
+        orr, ot = agg["ours_rot_deg_median"], agg["ours_trans_mm_median"]
+        print(f"ours vs paper (medians): {pr / max(orr, 1e-12):.2f}x rotation, {pt / max(ot, 1e-12):.2f}x translation; "
+              f"ours vs CRB: {orr / max(agg['crb_rot_deg_median'], 1e-12):.2f}x rotation, "
+              f"{ot / max(agg['crb_trans_mm_median'], 1e-12):.2f}x translation")
+    out = {"method": "lrf", "family": True, "aggregate": agg, "rows": rows}
+    if json_path:
+        os.makedirs(os.path.dirname(os.path.abspath(json_path)), exist_ok=True)
+        with open(json_path, "w") as fh:
+            json.dump(out, fh, indent=1, default=float)
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="lidar-cam-calib bench lrf", description=__doc__.splitlines()[0])
     ap.add_argument("--observations", type=int, default=2)
@@ -301,7 +514,25 @@ def main(argv=None) -> int:
                     help="sim: simulator + real feature extraction (default); synthetic: analytic features")
     ap.add_argument("--scenario", default=None, help="scenario YAML (sim source; default: paper 003 sensors)")
     ap.add_argument("--json", default=None, help="write the run (one) or all runs (sweep/repeats) as JSON")
+    ap.add_argument("--family", action="store_true",
+                    help="scenes drawn from the seed (camera, board, laser, mount, stops, clocks): per-seed rows "
+                         "and aggregate, paper vs ours vs the Cramer-Rao bound")
+    ap.add_argument("--seeds", type=int, default=10, help="--family: number of scenes (seed, seed+1, ...)")
+    ap.add_argument("--stops", type=int, default=None, help="--family: stops per scene (default: drawn, 6-20)")
+    ap.add_argument("--frames", type=int, default=None, help="--family: frames per stop (default: drawn)")
+    ap.add_argument("--detection", action="store_true",
+                    help="--family: single-frame detection rate (frames whose faces show >= 2000 px)")
     a = ap.parse_args(argv)
+    if a.family and a.detection:
+        out = detection_rate(a.seeds, a.seed)
+        if a.json:
+            os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
+            with open(a.json, "w") as fh:
+                json.dump(out, fh, indent=1, default=float)
+        return 0
+    if a.family:
+        family_main(a.seeds, a.seed, a.stops, a.frames, a.json)
+        return 0
     Ns = [2, 5, 10, 20] if a.sweep else [a.observations]
     rows, runs = [], []
     for N in Ns:
@@ -329,7 +560,7 @@ def main(argv=None) -> int:
     for N, s, k, u, er, et, pl, rt, be in rows:
         print(f"{N:>3} {s:>6} {k:>4} {u:5.1f} {er:8.3f} {et:9.2f} {pl:7.2f} {rt:7.1f} {be:22.2f}")
     by = {}
-    for N, s, k, u, er, et, *_ in rows:
+    for N, s, _k, _u, er, et, *_ in rows:
         by.setdefault(N, {})[s] = (er, et)
     for N, d in by.items():
         if "paper" in d and "ours" in d and d["ours"][0] > 0 and d["ours"][1] > 0:

@@ -39,7 +39,7 @@ class LrfFrame:
 
     @classmethod
     def from_sim(cls, obs, right: bool = False, laser_frame: str = "laser",
-                 camera_frame: str | None = None) -> "LrfFrame":
+                 camera_frame: str | None = None) -> LrfFrame:
         """From a simulator observation (duck-typed; ``right`` uses the right camera)."""
         depth = obs.depth_right_m if right else obs.depth_m
         cam = obs.camera_right if right else obs.camera

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -61,7 +61,7 @@ class PlaneStats:
 
     @classmethod
     def from_points(cls, pts: np.ndarray, n: np.ndarray, d: float,
-                    weights: np.ndarray | None = None) -> "PlaneStats":
+                    weights: np.ndarray | None = None) -> PlaneStats:
         pts = np.asarray(pts, dtype=float)
         w = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=float)
         ws = float(w.sum())
@@ -73,7 +73,7 @@ class PlaneStats:
         spread = np.maximum(ev[1:], 1e-12)
         r = pts @ n + d
         vf = float((w * r * r).sum() / max(len(pts) - 3, 1))
-        return cls(c, axes, spread, ws, vf, int(len(pts)), float(np.sqrt(np.mean(r * r))))
+        return cls(c, axes, spread, ws, vf, len(pts), float(np.sqrt(np.mean(r * r))))
 
     def offset_variance(self, p: np.ndarray, floor_m: float = 0.0) -> np.ndarray:
         """Variance (m^2) of the fitted plane's position along its normal at
@@ -102,6 +102,7 @@ class LrfObservation:
     corner_cov_laser: np.ndarray | None = None
     stamp_s: float = 0.0
     laser_sigma_m: float = 0.0125
+    depth_noise: object = None  # features.DepthNoise the plane weights came from (reports, bounds)
 
     def __post_init__(self) -> None:
         self.corners_laser_m = np.asarray(self.corners_laser_m, dtype=float).reshape(3, 2)
@@ -112,7 +113,7 @@ class LrfObservation:
         P = self.planes_cam
         return [intersect_planes((P[i, :3], P[i, 3]), (P[j, :3], P[j, 3])) for i, j in CORNER_PLANES]
 
-    def swapped(self) -> "LrfObservation":
+    def swapped(self) -> LrfObservation:
         """The same observation with the two camera triangles exchanged
         (ABC <-> ACD): the alternative laser/camera face correspondence."""
         P = self.planes_cam[[0, 2, 1]]
@@ -224,7 +225,7 @@ def paper_adaptive(observations_stream: Iterable[LrfObservation], threshold_m: f
     errors: list[float] = []
     R = t = None
     info: dict = {}
-    for k, o in enumerate(observations_stream):
+    for o in observations_stream:
         if max_observations is not None and len(used) >= max_observations:
             break
         if len(used) >= 2 and R is not None:
@@ -290,30 +291,94 @@ def resolve_assignment(observations: Sequence[LrfObservation], ratio: float = 0.
 
 
 def reject_outlier_observations(observations: Sequence[LrfObservation], min_m: float = 0.03,
-                                factor: float = 5.0) -> tuple[list[LrfObservation], list[int], list[float]]:
+                                factor: float = 5.0, options: OursOptions | None = None,
+                                chi2_max: float = 22.5) -> tuple[list[LrfObservation], list[int], list[float]]:
     """Drop observations that disagree with the others (a mis-detected board).
 
-    Fit ours (robust loss) on all; an observation whose worst corner lies
-    farther from its camera line than ``max(min_m, factor * median of the
-    observations' worst corners)`` is dropped, the worst first, and the rest
-    refitted; at most a third of them, and only from 3 observations on (with
-    two, nothing tells which one is wrong). Returns (kept, dropped indices,
-    worst corner-line distance of every input observation in metres)."""
+    Fit ours (robust loss) on all; each observation's whitened residuals give
+    its chi^2 (6 residuals: two per face). The worst is dropped when its chi^2
+    exceeds ``max(chi2_max, factor * median chi^2)`` (22.5 = chi^2_6 at 99.9 %;
+    the median guards against noise that is larger everywhere) *or* its worst
+    corner lies farther than ``max(min_m, factor * median)`` from its camera
+    line; then the rest is refitted. At most a third, and only from 3
+    observations on (with two nothing tells which one is wrong). Returns
+    (kept, dropped indices, chi^2 of every input observation)."""
     obs = list(observations)
     idx = list(range(len(obs)))
     dropped: list[int] = []
-    worst_all = [float("nan")] * len(obs)
+    chi_all = [float("nan")] * len(obs)
+    opt = options or OursOptions()
     while len(idx) >= 3 and len(dropped) < len(obs) // 3:
-        sol = solve_ours([obs[i] for i in idx])
+        sub = [obs[i] for i in idx]
+        sol = solve_ours(sub, options=opt)
         R, t = sol.T[:3, :3], sol.T[:3, 3]
-        worst = np.array([float(np.max(corner_line_distances_m(R, t, obs[i]))) for i in idx])
-        for i, w in zip(idx, worst):
-            worst_all[i] = float(w)
-        k = int(np.argmax(worst))
-        if worst[k] <= max(min_m, factor * float(np.median(worst))):
+        chi = np.array(observation_chi2(sub, R, t, opt))
+        worst = np.array([float(np.max(corner_line_distances_m(R, t, o))) for o in sub])
+        for i, c in zip(idx, chi):
+            chi_all[i] = float(c)
+        k = int(np.argmax(chi))
+        bad_chi = chi[k] > max(chi2_max, factor * float(np.median(chi)))
+        kw = int(np.argmax(worst))
+        bad_corner = worst[kw] > max(min_m, factor * float(np.median(worst)))
+        if not (bad_chi or bad_corner):
             break
-        dropped.append(idx.pop(k))
-    return [obs[i] for i in idx], dropped, worst_all
+        dropped.append(idx.pop(k if bad_chi else kw))
+    return [obs[i] for i in idx], dropped, chi_all
+
+
+def observation_chi2(observations: Sequence[LrfObservation], R: np.ndarray, t: np.ndarray,
+                     options: OursOptions | None = None) -> list[float]:
+    """Sum of squared whitened residuals of each observation at (R, t)."""
+    opt = options or OursOptions()
+    prob = _Problem(observations, opt)
+    prob.update_weights(R, t)
+    r = prob.residuals(np.zeros(6), R, t)
+    out = [0.0] * len(prob.obs)
+    if prob.has_points:
+        rr = r[: 2 * len(prob.faces)].reshape(-1, 2)
+        for (k, _f), v in zip(prob.faces, rr):
+            out[k] += float(v @ v)
+    return out
+
+
+def covariance_left(cov_right: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Covariance of the perturbation ``(exp(dtheta) R, t + dt)`` (rotation in
+    the camera frame) from that of ``(R exp(w), t + v)`` (laser frame):
+    ``dtheta = R w``."""
+    J = np.zeros((6, 6))
+    J[:3, :3] = R
+    J[3:, 3:] = np.eye(3)
+    return J @ cov_right @ J.T
+
+
+def pose_error_vector(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """Error (6,) in the left convention of :func:`covariance_left`: rotation
+    vector of ``R_true R_est^T`` and ``t_true - t_est``."""
+    dR = T_true[:3, :3] @ T_est[:3, :3].T
+    return np.concatenate([so3_log(dR), T_true[:3, 3] - T_est[:3, 3]])
+
+
+def mahalanobis2(T_est: np.ndarray, cov_left: np.ndarray, T_true: np.ndarray) -> float:
+    """Squared Mahalanobis distance of the 6-dof error against a covariance."""
+    e = pose_error_vector(T_est, T_true)
+    try:
+        return float(e @ np.linalg.solve(cov_left, e))
+    except np.linalg.LinAlgError:
+        return float("inf")
+
+
+def information_at(observations: Sequence[LrfObservation], T: np.ndarray,
+                   options: OursOptions | None = None) -> np.ndarray:
+    """``J^T J`` (6x6, right perturbation) of our whitened residuals at ``T``:
+    with the true noise in the observations this is the Fisher information,
+    its inverse the Cramer-Rao bound of the pose given these features."""
+    opt = options or OursOptions()
+    R, t = np.asarray(T)[:3, :3], np.asarray(T)[:3, 3]
+    prob = _Problem(observations, opt)
+    prob.update_weights(R, t)
+    fun = lambda x: prob.residuals(x, R, t)
+    J = _num_jac(fun, np.zeros(6))
+    return J.T @ J
 
 
 # ----------------------------------------------------------------------------
@@ -343,7 +408,7 @@ class OursOptions:
     corner_weight: float = 0.0           # > 0 adds corner-on-line residuals (same data: counted twice)
     loss: str = "soft_l1"
     f_scale: float = 3.0                 # robust-loss scale in sigmas
-    scale_covariance: bool = True        # multiply by max(1, s^2) (s^2 = posterior variance factor)
+    scale_covariance: bool = True        # multiply by s^2 when the residuals fail the chi^2 test (see solve_ours)
     target_sigma_deg: float = 0.1
     target_sigma_mm: float = 2.0
     max_nfev: int = 50
@@ -482,7 +547,7 @@ def _segment_line(pts: np.ndarray, sigma_range_m: float, floor_m: float):
     return np.stack([base - a * u, base + a * u]), nu, 2.0 / W
 
 
-def _plane_offset_cov(st: "PlaneStats", p: np.ndarray) -> np.ndarray:
+def _plane_offset_cov(st: PlaneStats, p: np.ndarray) -> np.ndarray:
     """Covariance (len(p) x len(p)) of the fitted plane's offset along its
     normal at points ``p``: centroid term plus the correlated tilt terms."""
     a = (np.atleast_2d(p) - st.centroid) @ st.axes.T
@@ -567,7 +632,9 @@ def solve_ours(observations: Sequence[LrfObservation], T_init: np.ndarray | None
     the right). Whitening is recomputed once at the first solution and the
     problem solved again. Covariance: ``(J^T J)^-1`` of the whitened residuals
     at the solution (a-priori noise model), multiplied by the posterior
-    variance factor s^2 when s^2 > 1 (``scale_covariance``)."""
+    variance factor s^2 when the residuals are larger than the noise model
+    allows (s^2 above the 99 % quantile of chi^2_dof / dof; within it, s^2 > 1
+    is what chance gives and scaling would make the covariance pessimistic)."""
     opt = options or OursOptions()
     obs = list(observations)
     t_start = time.perf_counter()
@@ -586,13 +653,13 @@ def solve_ours(observations: Sequence[LrfObservation], T_init: np.ndarray | None
     res = None
     for _ in range(2):
         prob.update_weights(R, t)
-        fun = lambda x, R_=R, t_=t: prob.residuals(x, R_, t_)  # noqa: E731
+        fun = lambda x, R_=R, t_=t: prob.residuals(x, R_, t_)
         res = least_squares(fun, np.zeros(6), method="trf", loss=opt.loss, f_scale=opt.f_scale,
                             x_scale=np.array([0.01] * 3 + [0.01] * 3), max_nfev=opt.max_nfev)
         R = R @ so3_exp(res.x[:3])
         t = t + res.x[3:]
     prob.update_weights(R, t)
-    fun = lambda x: prob.residuals(x, R, t)  # noqa: E731
+    fun = lambda x: prob.residuals(x, R, t)
     r = fun(np.zeros(6))
     J = _num_jac(fun, np.zeros(6))
     JtJ = J.T @ J
@@ -602,7 +669,8 @@ def solve_ours(observations: Sequence[LrfObservation], T_init: np.ndarray | None
         cov = np.linalg.inv(JtJ)
     except np.linalg.LinAlgError:
         cov = np.linalg.pinv(JtJ)
-    if opt.scale_covariance and s2 > 1.0:
+    from scipy.stats import chi2 as _chi2
+    if opt.scale_covariance and s2 > float(_chi2.ppf(0.99, dof)) / dof:
         cov = cov * s2
     T = make_T(R, t)
     mean_range = float(np.mean(np.linalg.norm(np.concatenate([o.corners_laser_m for o in obs]), axis=1)))
@@ -613,7 +681,7 @@ def solve_ours(observations: Sequence[LrfObservation], T_init: np.ndarray | None
         "point_to_line_m": point_to_line_error_m(R, t, obs),
         "plane_rms_m": plane_rms,
         "variance_factor": s2,
-        "residuals": int(len(r)),
+        "residuals": len(r),
         "nfev": int(res.nfev) if res is not None else 0,
         "sigma_rotation_deg": float(np.degrees(sd[:3].max())),
         "sigma_translation_mm": float(sd[3:].max() * 1000.0),

@@ -118,7 +118,7 @@ def _open_writer(bag_path: Path, compress: bool):
 
     try:
         return _ZstdBagWriter(bag_path).open()
-    except Exception:  # older/newer rosbags without storage compression: write uncompressed
+    except Exception:  # noqa: BLE001 -- older/newer rosbags without storage compression: write uncompressed
         if bag_path.exists():
             shutil.rmtree(bag_path)
         return BagWriter(bag_path).open()

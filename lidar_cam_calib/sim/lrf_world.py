@@ -45,10 +45,11 @@ class FoldedBoard:
     from in front of the board, y up along the board, z out of the front face (towards the
     viewer). Vertices::
 
-        P = (-w/2, 0, 0)  bottom-left      B = (-w/2, h, 0)  top-left
-        Q = ( w/2, 0, 0)  bottom-right     D = ( w/2, h, 0)  top-right
-        A = (a_x, a_y, 0) on the base (default bottom-centre)
-        C = (c_x, c_y, c_z) apex, c_z > 0 out of the base (default top-centre, 0.6 m out)
+        P = (-w/2, 0, 0)  bottom-left      TL = (-w/2, h, 0)  top-left
+        Q = ( w/2, 0, 0)  bottom-right     TR = ( w/2, h, 0)  top-right
+        A = (a_x, a_y, 0), B = (b_x, b_y, 0), D = (d_x, d_y, 0) anywhere on the back
+        rectangle (default: A bottom-centre, B = TL, D = TR; B is the left one)
+        C = (c_x, c_y, c_z) apex, c_z > 0 out of the base, above or below A
 
     Faces (index = label): 0 'base' = rectangle PBDQ (plane z = 0), 1 'abc' = triangle ABC (left
     flap), 2 'acd' = triangle ACD (right flap). Edges: AB = base/abc, AC = abc/acd,
@@ -60,19 +61,23 @@ class FoldedBoard:
 
     def __init__(self, width_m: float = 1.0, height_m: float = 1.0,
                  a_xy_m: Sequence[float] = (0.0, 0.0),
-                 c_xyz_m: Sequence[float] = (0.0, 1.0, 0.6), stand_depth_m: float = 0.0):
+                 c_xyz_m: Sequence[float] = (0.0, 1.0, 0.6), stand_depth_m: float = 0.0,
+                 b_xy_m: Optional[Sequence[float]] = None, d_xy_m: Optional[Sequence[float]] = None):
         self.width_m = float(width_m)
         self.height_m = float(height_m)
         w2, h = 0.5 * self.width_m, self.height_m
+        b = (-w2, h) if not b_xy_m else (float(b_xy_m[0]), float(b_xy_m[1]))
+        d = (w2, h) if not d_xy_m else (float(d_xy_m[0]), float(d_xy_m[1]))
         self.vertices = {
-            "P": np.array([-w2, 0.0, 0.0]), "B": np.array([-w2, h, 0.0]),
-            "D": np.array([w2, h, 0.0]), "Q": np.array([w2, 0.0, 0.0]),
+            "P": np.array([-w2, 0.0, 0.0]), "TL": np.array([-w2, h, 0.0]),
+            "TR": np.array([w2, h, 0.0]), "Q": np.array([w2, 0.0, 0.0]),
+            "B": np.array([b[0], b[1], 0.0]), "D": np.array([d[0], d[1], 0.0]),
             "A": np.array([float(a_xy_m[0]), float(a_xy_m[1]), 0.0]),
             "C": np.array([float(c) for c in c_xyz_m]),
         }
         self.stand_depth_m = float(stand_depth_m)
-        if self.vertices["C"][1] - self.vertices["A"][1] < 1e-3:
-            raise ValueError("apex C must lie above A (c_y > a_y) so a horizontal scan crosses AC")
+        if abs(self.vertices["C"][1] - self.vertices["A"][1]) < 1e-3:
+            raise ValueError("apex C must lie above or below A (c_y != a_y) so a horizontal scan crosses AC")
         n = self.planes()[0]
         # Any three faces must be non-parallel (linearly independent normals).
         if abs(np.linalg.det(n)) < 1e-3:
@@ -80,16 +85,17 @@ class FoldedBoard:
 
     @classmethod
     def from_config(cls, cfg) -> "FoldedBoard":
-        return cls(cfg.width_m, cfg.height_m, cfg.a_xy_m, cfg.c_xyz_m, cfg.stand_depth_m)
+        return cls(cfg.width_m, cfg.height_m, cfg.a_xy_m, cfg.c_xyz_m, cfg.stand_depth_m,
+                   getattr(cfg, "b_xy_m", None), getattr(cfg, "d_xy_m", None))
 
     def faces(self, include_stand: bool = True) -> list[np.ndarray]:
         """Face polygons in the board frame, index = label: [base PBDQ, ABC, ACD(, stand)].
 
         Each is a (k, 3) array ordered counter-clockwise around its front normal."""
         v = self.vertices
-        out = [np.stack([v["P"], v["Q"], v["D"], v["B"]]),
-               np.stack([v["A"], v["C"], v["B"]]),
-               np.stack([v["A"], v["D"], v["C"]])]
+        out = [np.stack([v["P"], v["Q"], v["TR"], v["TL"]])]
+        for tri in (np.stack([v["A"], v["C"], v["B"]]), np.stack([v["A"], v["D"], v["C"]])):
+            out.append(tri if _newell_normal(tri)[2] > 0 else tri[::-1].copy())
         if include_stand and self.stand_depth_m > 0:
             s = self.stand_depth_m
             w2 = 0.5 * self.width_m
@@ -119,8 +125,8 @@ class FoldedBoard:
         return out
 
     def corners(self) -> np.ndarray:
-        """(6, 3) vertices P, B, D, Q, A, C in the board frame."""
-        return np.stack([self.vertices[k] for k in "PBDQAC"])
+        """(6, 3) rectangle corners P, TL, TR, Q, then A, C in the board frame."""
+        return np.stack([self.vertices[k] for k in ("P", "TL", "TR", "Q", "A", "C")])
 
 
 def _newell_normal(poly: np.ndarray) -> np.ndarray:
@@ -326,8 +332,11 @@ class DepthCameraModel:
     def __init__(self, camera: CameraModel, depth_min_m: float = 0.3, depth_max_m: float = 20.0,
                  sigma_disparity_px: float = 0.1, baseline_m: float = 0.12,
                  dropout_fraction: float = 0.0, invalid_value: float = np.nan,
-                 stereo_width_px: Optional[int] = None):
+                 stereo_width_px: Optional[int] = None, k_override: float = 0.0,
+                 quantise_mm: bool = False):
         self.camera = camera
+        self.k_override = float(k_override)
+        self.quantise_mm = bool(quantise_mm)
         self.stereo_width_px = int(stereo_width_px or camera.width)
         self.depth_min_m = float(depth_min_m)
         self.depth_max_m = float(depth_max_m)
@@ -341,6 +350,8 @@ class DepthCameraModel:
     @property
     def k_noise(self) -> float:
         """sigma_z = k_noise * z^2 (1/m)."""
+        if self.k_override > 0:
+            return self.k_override
         fx_stereo = self.camera.fx * self.stereo_width_px / self.camera.width
         return self.sigma_disparity_px / (fx_stereo * self.baseline_m)
 
@@ -398,6 +409,8 @@ class DepthCameraModel:
         bad = ~np.isfinite(d) | (d < self.depth_min_m) | (d > self.depth_max_m)
         if noise and rng is not None and self.dropout_fraction > 0:
             bad |= rng.random(d.size) < self.dropout_fraction
+        if self.quantise_mm:
+            d = np.round(d * 1000.0) / 1000.0
         d[bad] = self.invalid_value
         return d.reshape(self.camera.height, self.camera.width).astype(np.float32)
 
@@ -427,7 +440,8 @@ class DepthCameraModel:
 
 def camera_from_config(cfg) -> CameraModel:
     """Pinhole (optionally distorted) camera from a CameraConfig: fx = fy from the hfov."""
-    fx = 0.5 * cfg.width_px / np.tan(0.5 * np.radians(cfg.hfov_deg))
+    fx = float(cfg.fx_px) if getattr(cfg, "fx_px", 0.0) > 0 else \
+        0.5 * cfg.width_px / np.tan(0.5 * np.radians(cfg.hfov_deg))
     model = cfg.distortion_model or ""
     return CameraModel.from_K(cfg.width_px, cfg.height_px, fx, fx, 0.5 * (cfg.width_px - 1),
                               0.5 * (cfg.height_px - 1), D=list(cfg.D) if cfg.D else np.zeros(0),
@@ -519,7 +533,8 @@ class LrfWorld:
         kw = dict(depth_min_m=sc.camera.depth_min_m, depth_max_m=sc.camera.depth_max_m,
                   sigma_disparity_px=sc.camera.sigma_disparity_px, baseline_m=sc.camera.baseline_m,
                   dropout_fraction=sc.camera.dropout_fraction, invalid_value=inv,
-                  stereo_width_px=sc.camera.stereo_width_px)
+                  stereo_width_px=sc.camera.stereo_width_px, k_override=sc.camera.depth_sigma_k,
+                  quantise_mm=sc.camera.depth_encoding == "16UC1")
         self.depth_cam = DepthCameraModel(cam, **kw)
         self.has_right = bool(sc.camera.right_camera)
         self.depth_cam_right = DepthCameraModel(
@@ -646,11 +661,21 @@ class LrfWorld:
             _, valid = cam.camera.project(pc_cam)
             if not np.all(valid) or np.any(pc_cam[:, 2] < cam.depth_min_m) or np.any(pc_cam[:, 2] > cam.depth_max_m):
                 return False, f"board not fully in the {'right' if right else 'left'} camera image"
-            _, labc = self.cast_depth(T_world_agv, T_world_board, right=right)
+            # pixel counts on a 4x coarser image (x 16): the check runs for every pose attempt
+            vcam = self._vis_cam(right)
+            faces = self._faces_in(inv_T(T_wc) @ T_world_board)
+            _, labc = vcam.cast(faces, self._labels, None, None)
             for f in (FACE_BASE, FACE_ABC, FACE_ACD):
-                if np.count_nonzero(labc == f) < pc.min_pixels_per_face:
+                if 16 * np.count_nonzero(labc == f) < pc.min_pixels_per_face:
                     return False, f"{'right' if right else 'left'} camera sees too little of {FACE_NAMES[f]}"
         return True, "ok"
+
+    def _vis_cam(self, right: bool) -> "DepthCameraModel":
+        key = "_vis_right" if right else "_vis_left"
+        if getattr(self, key, None) is None:
+            cam = (self.depth_cam_right if right else self.depth_cam).camera
+            setattr(self, key, DepthCameraModel(cam.scaled(0.25)))
+        return getattr(self, key)
 
     # -- pose generation -------------------------------------------------------------------------
     def _board_pose_sample(self, u: np.ndarray) -> np.ndarray:
@@ -659,14 +684,14 @@ class LrfWorld:
         if not pc.replace_board:
             return board_pose(bx, by, pc.board_base_height_m, np.radians(pc.board_yaw_deg),
                               np.radians(pc.board_tilt_deg))
-        lerp = lambda rg, x: rg[0] + (rg[1] - rg[0]) * x  # noqa: E731
+        lerp = lambda rg, x: rg[0] + (rg[1] - rg[0]) * x
         return board_pose(bx, by, lerp(pc.board_base_height_range_m, u[0]),
                           np.radians(pc.board_yaw_deg + lerp(pc.board_yaw_range_deg, u[1])),
                           np.radians(pc.board_tilt_deg + lerp(pc.board_tilt_range_deg, u[2])))
 
     def _agv_pose_sample(self, T_world_board: np.ndarray, u: np.ndarray) -> Optional[np.ndarray]:
         pc = self.scenario.poses
-        lerp = lambda rg, x: rg[0] + (rg[1] - rg[0]) * x  # noqa: E731
+        lerp = lambda rg, x: rg[0] + (rg[1] - rg[0]) * x
         dist, lat, yaw = lerp(pc.distance_m, u[0]), lerp(pc.lateral_m, u[1]), np.radians(lerp(pc.yaw_deg, u[2]))
         nz = T_world_board[:3, 2].copy()
         nz[2] = 0.0

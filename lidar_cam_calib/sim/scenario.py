@@ -25,13 +25,16 @@ class BoardConfig:
     Board frame: origin at the bottom-centre of the base rectangle PBDQ, x to the right as seen
     by a viewer in front of the board, y up along the board, z out of the front face (towards the
     viewer). The base rectangle spans x in [-width/2, width/2], y in [0, height], z = 0.
-    ``B`` and ``D`` are the top-left / top-right corners of the base, ``A`` lies on the base
-    (``a_xy_m``), the apex ``C`` (``c_xyz_m``) sticks out of the base by ``c_xyz_m[2]``.
+    ``A``, ``B`` and ``D`` lie anywhere on the base (``a_xy_m``, ``b_xy_m``, ``d_xy_m``; empty
+    ``b_xy_m`` / ``d_xy_m`` = the top-left / top-right corners), B left of D; the apex ``C``
+    (``c_xyz_m``) sticks out of the base by ``c_xyz_m[2]``, above or below A.
     """
 
     width_m: float = 1.0
     height_m: float = 1.0
     a_xy_m: list = field(default_factory=lambda: [0.0, 0.0])
+    b_xy_m: list = field(default_factory=list)
+    d_xy_m: list = field(default_factory=list)
     c_xyz_m: list = field(default_factory=lambda: [0.0, 1.0, 0.6])
     # Optional rear stand panel (a second rectangle behind the board, leaning back); 0 disables.
     stand_depth_m: float = 0.0
@@ -73,12 +76,18 @@ class CameraConfig:
     (``stereo_width_px``), not at the published depth resolution: a camera that
     publishes a downscaled depth image is not noisier for it. With the defaults,
     sigma is 3.1 mm at 1 m and 28 mm at 3 m (ZED2i spec: < 1 % up to 3 m).
-    ``invalid_value``: 'nan' or 0 for pixels without depth.
+    ``invalid_value``: 'nan' or 0 for pixels without depth. ``fx_px`` > 0 sets the focal
+    length directly (else from ``hfov_deg``); ``depth_sigma_k`` > 0 sets sigma_z = k z^2
+    directly (a structured-light / ToF camera instead of the stereo model);
+    ``depth_encoding`` '16UC1' rounds the simulated depth to whole millimetres.
     """
 
     width_px: int = 640
     height_px: int = 360
     hfov_deg: float = 100.0
+    fx_px: float = 0.0
+    depth_sigma_k: float = 0.0
+    depth_encoding: str = "32FC1"
     distortion_model: str = ""
     D: list = field(default_factory=list)
     depth_min_m: float = 0.3
@@ -155,6 +164,7 @@ class TimelineConfig:
     write_color: bool = True
     write_right: bool = True
     depth_offset_s: float = 0.013  # depth frames are stamped this long after a scan slot
+    stamp_jitter_s: float = 0.0  # uniform +/- jitter on every stamp (clock noise)
     compress: bool = True  # zstd MCAP chunk compression (rosbags CompressionMode.STORAGE)
 
 
@@ -237,6 +247,11 @@ def _validate(sc: Scenario) -> None:
         raise ValueError("poses.n_poses must be >= 1")
     if len(sc.board.a_xy_m) != 2 or len(sc.board.c_xyz_m) != 3:
         raise ValueError("board.a_xy_m needs 2 values and board.c_xyz_m 3 values")
+    for k in ("b_xy_m", "d_xy_m"):
+        if len(getattr(sc.board, k)) not in (0, 2):
+            raise ValueError(f"board.{k} needs 2 values (or none: the top corner)")
+    if sc.camera.depth_encoding not in ("32FC1", "16UC1"):
+        raise ValueError("camera.depth_encoding must be '32FC1' or '16UC1'")
     if sc.board.c_xyz_m[2] <= 0:
         raise ValueError("board.c_xyz_m[2] (apex protrusion) must be > 0")
     if sc.laser.resolution_deg <= 0 or sc.laser.fov_deg <= 0:
