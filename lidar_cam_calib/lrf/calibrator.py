@@ -149,6 +149,10 @@ class LrfCalibrator:
             self.stops_refused += 1
         return v
 
+    def drop_stop(self) -> None:
+        """Forget the frames of the current stop (an input of it was refused)."""
+        self._stop = StopAccumulator(self.cfg)
+
     def add_stop(self, frames, scans=()) -> Verdict:
         """All frames of one stop at once (``scans``: extra range arrays of the stop)."""
         for f in frames:
@@ -278,7 +282,8 @@ class LrfCalibrator:
 class StaticDetector:
     """Fires once per stop: ``update`` returns True the first time the scan has
     been static (median |range change| vs the scan at the start of the still
-    period < ``range_tol_m``) for ``static_time_s``; re-arms after motion."""
+    period < ``range_tol_m``) for ``static_time_s``; re-arms after motion.
+    ``still`` says whether the last scan matched the stop's first one."""
 
     def __init__(self, static_time_s: float = 1.0, range_tol_m: float = 0.01):
         self.static_time_s = static_time_s
@@ -286,9 +291,11 @@ class StaticDetector:
         self._ref = None
         self._since = None
         self._fired = False
+        self.still = False
 
     def update(self, stamp_s: float, ranges) -> bool:
         r = np.asarray(ranges, dtype=float).ravel()
+        self.still = False
         if self._ref is None or self._ref.shape != r.shape:
             self._ref, self._since, self._fired = r, stamp_s, False
             return False
@@ -297,6 +304,7 @@ class StaticDetector:
         if moved:
             self._ref, self._since, self._fired = r, stamp_s, False
             return False
+        self.still = True
         if not self._fired and stamp_s - self._since >= self.static_time_s:
             self._fired = True
             return True

@@ -3,9 +3,12 @@
 Subscribes LaserScan, a depth Image (16UC1 mm or 32FC1 m) and its CameraInfo,
 pairs scan and depth with the approximate-time synchroniser, and takes one
 observation per ``~/capture`` call (the AGV has stopped) and/or by itself when
-the scan has been static for ``static_time_s`` (``trigger`` parameter). The
-base fits, adopts and publishes; all of the method lives in
-:mod:`lidar_cam_calib.lrf`.
+the scan has been static for ``static_time_s`` (``trigger`` parameter). Every
+pair that arrives while the AGV stands still is fed to the calibrator's stop
+accumulator (depth averaged per pixel, scans stacked), so one observation
+comes from all frames of a stop and one bad frame does not lose it; a refused
+input or motion starts the stop again. The base fits, adopts and publishes;
+all of the method lives in :mod:`lidar_cam_calib.lrf`.
 """
 from __future__ import annotations
 
@@ -36,6 +39,8 @@ class LrfCalibNode(CalibNodeBase):
         self.camera = None
         self._camera_info_key = None
         self.latest_pair: tuple[Any, Any] | None = None
+        self._stop_frames = 0                     # frames fed to the current stop
+        self._stop_last: LrfFrame | None = None   # the newest of them (for the overlay)
         self.add_input("scan", LaserScan, "scan_topic", "/scan", "sensor_msgs/LaserScan input.", self._on_scan)
         self.add_input("depth", Image, "depth_topic", "/camera/depth/image_raw",
                        "Depth image input (16UC1 mm or 32FC1 m).", self._on_depth)
@@ -62,6 +67,7 @@ class LrfCalibNode(CalibNodeBase):
     def on_reset(self) -> None:
         self.sync.reset()
         self.latest_pair = None
+        self._stop_frames = 0
         self.static = StaticDetector(self.param("static_time_s"), self.param("static_range_tol_m"))
 
     # -- inputs (input callback group, in arrival order) -----------------------
@@ -75,9 +81,12 @@ class LrfCalibNode(CalibNodeBase):
         t = stamp_to_s(msg.header.stamp)
         ranges = validate_laserscan(msg)
         self.check_stamp("scan", t, ranges)
+        fired = self.static.update(t, ranges)
+        if not self.static.still:
+            self._stop_frames = 0   # the AGV moves: the next stop starts afresh
         for pair in self.sync.push("scan", t, msg):
-            self.latest_pair = pair
-        if self.param("trigger") in ("auto", "both") and self.static.update(t, ranges):
+            self._on_pair(pair)
+        if self.param("trigger") in ("auto", "both") and fired:
             ok, why = self._capture(auto=True, fired_at_s=t)
             if not ok:
                 self.reject(why)
@@ -87,7 +96,43 @@ class LrfCalibNode(CalibNodeBase):
         depth_image_to_m(msg)  # a wrong encoding or size is refused at once, with its reason
         self.check_stamp("depth", t, msg.data)
         for pair in self.sync.push("depth", t, msg):
-            self.latest_pair = pair
+            self._on_pair(pair)
+
+    def _on_pair(self, pair: tuple) -> None:
+        """A synchronised scan + depth pair: the latest one, and one more frame
+        of the current stop while the scan is static."""
+        self.latest_pair = pair
+        if self.camera is None or not self.static.still:
+            return
+        if self.fresh_enough(*(stamp_to_s(m.header.stamp) for m in pair)):
+            return
+        frame = self._frame(pair)
+        gen = self._generation
+        self._stop_frames += 1
+        replay = self.pub_ack is not None
+        if replay or self._jobs.qsize() < 4:   # live: while a fit runs, extra frames of the stop are skipped
+            self.submit(lambda: self._feed(frame, gen), wait=False)
+
+    def _feed(self, frame: LrfFrame, gen: int) -> tuple[bool, str]:
+        if gen != self._generation:
+            return False, "frame from before ~/recalibrate"
+        self._busy = "averaging a stop"
+        v = self.calib.feed(frame)
+        self._stop_last = frame
+        return v.accepted, v.reason
+
+    def refuse_input(self, stream: str, msg: Any, reason: str) -> None:
+        super().refuse_input(stream, msg, reason)
+        if stream in ("scan", "depth") and self._stop_frames:
+            # a capture must not use frames older than a refused input: the stop starts again
+            self._stop_frames = 0
+            gen = self._generation
+            self.submit(lambda: self._drop_stop(gen), wait=False)
+
+    def _drop_stop(self, gen: int) -> tuple[bool, str]:
+        if gen == self._generation:
+            self.calib.drop_stop()
+        return True, "stop dropped"
 
     # -- observations -------------------------------------------------------------
     def on_capture(self) -> tuple[bool, str]:
@@ -108,8 +153,25 @@ class LrfCalibNode(CalibNodeBase):
             return False, stale
         if auto and fired_at_s is not None and scan_t < fired_at_s - self.param("static_time_s"):
             return False, "static scene but no depth image paired during the stop: observation skipped"
-        frame = LrfFrame(
-            stamp_s=scan_t,
+        with self._lock:
+            if self.latest_pair is pair:
+                self.latest_pair = None  # a pair is never used for a second observation
+        gen = self._generation
+        if self._stop_frames:
+            # every frame of this stop, averaged (the latest pair is among them)
+            self._stop_frames = 0
+            return self.submit(lambda: self.process(self.calib.end_stop, self._stop_last, scan_t, auto, gen),
+                               wait=not auto)
+        frame = self._frame(pair)
+        # A service call waits for the answer; the automatic capture from the
+        # scan callback does not (the worker fits while inputs keep flowing),
+        # except in lock-step replay, where the ack waits for the work anyway.
+        return self.submit_frame(frame, max(scan_t, depth_t), auto, wait=not auto)
+
+    def _frame(self, pair: tuple) -> LrfFrame:
+        scan, depth_msg = pair
+        return LrfFrame(
+            stamp_s=stamp_to_s(scan.header.stamp),
             scan_ranges_m=np.asarray(scan.ranges, dtype=np.float32),
             scan_angle_min_rad=float(scan.angle_min),
             scan_angle_increment_rad=float(scan.angle_increment),
@@ -120,13 +182,6 @@ class LrfCalibNode(CalibNodeBase):
             laser_frame=scan.header.frame_id or "laser",
             camera_frame=depth_msg.header.frame_id or "camera_depth_optical_frame",
         )
-        with self._lock:
-            if self.latest_pair is pair:
-                self.latest_pair = None  # a pair is never used for a second observation
-        # A service call waits for the answer; the automatic capture from the
-        # scan callback does not (the worker fits while inputs keep flowing),
-        # except in lock-step replay, where the ack waits for the work anyway.
-        return self.submit_frame(frame, max(scan_t, depth_t), auto, wait=not auto)
 
     def render_overlays(self, frame: LrfFrame, cal) -> dict:
         return {"": render_overlay(frame, cal.results[""].T_child_parent)}

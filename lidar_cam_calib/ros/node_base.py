@@ -517,10 +517,17 @@ class CalibNodeBase(Node):
 
     def _process_frame(self, frame: Any, stamp_s: float, auto: bool, gen: int, **add_kw: Any) -> tuple[bool, str]:
         """Worker: ``calib.add(frame, **add_kw)``, then fit and adopt when ready."""
+        return self.process(lambda: self.calib.add(frame, **add_kw), frame, stamp_s, auto, gen)
+
+    def process(self, add: Callable[[], Any], frame: Any, stamp_s: float, auto: bool, gen: int
+                ) -> tuple[bool, str]:
+        """Worker: ``add()`` gives the calibrator's Verdict on new data (one
+        frame, or a whole stop); when accepted and ready, fit and adopt.
+        ``frame`` is what the overlays are drawn on."""
         if gen != self._generation:
             return False, "frame from before ~/recalibrate (or a time jump): dropped"
         self._busy = "adding a frame"
-        verdict = self.calib.add(frame, **add_kw)
+        verdict = add()
         if not verdict.accepted:
             self.reject(verdict.reason)
             return False, verdict.reason
