@@ -1,7 +1,7 @@
 """Benchmark of the board method: epnp, kabsch_3d3d, paper and ours on identical simulated data.
 
 ``lidar-cam-calib bench board --poses N --seed S [--lidar rs16|vlp16|vlp32|hdl64|os1]
-[--family --seeds K] [--json FILE] [--plot FILE] [--half]``
+[--family --seeds K [--first-seed S]] [--json FILE] [--plot FILE] [--half]``
 
 One run: the simulator (:mod:`lidar_cam_calib.sim.board_world`) draws a session, its still
 frames go through the real extraction (:class:`~lidar_cam_calib.board.calibrator.BoardCalibrator`),
@@ -79,7 +79,8 @@ def _crb(obs, board, models, truth, true_poses, noise_px: dict, range_sigma_m: f
     if not cams:
         return {}
     opt = OursOptions(pixel_sigma_px=1.0, range_sigma_m=range_sigma_m, edge_sigma_m=edge_sigma_m,
-                      variance_rounds=0, max_iter=0, fixed_pixel_sigma=noise_px, robust_covariance=False)
+                      variance_rounds=0, max_iter=0, fixed_pixel_sigma=noise_px, robust_covariance=False,
+                      placement_offset_sigma=None)
     sol = solve_ours(obs_t, board, {c: models[c] for c in cams}, {c: truth[c] for c in cams}, opt)
     out = {}
     for c in cams:
@@ -282,18 +283,17 @@ def _summary(out: dict) -> str:
     return "\n".join(lines)
 
 
-def _family_summary(runs: list) -> dict:
-    wr, wt, m2, det_e, det_f = [], [], [], 0, 0
+def _solver_family(runs: list, name: str) -> dict:
+    """Aggregate of one solver over the family's runs."""
+    wr, wt, m2 = [], [], []
     for r in runs:
-        det_e += r["detection"]["eligible_still_frames"]
-        det_f += r["detection"]["found"]
-        s = r.get("solvers", {}).get("ours")
+        s = r.get("solvers", {}).get(name)
         if not s:
             continue
         wr.append(s["rotation_error_deg"])
         wt.append(s["translation_error_mm"])
         m2 += [v["mahalanobis2"] for v in s["cameras"].values() if math.isfinite(v["mahalanobis2"])]
-    f = {"runs": len(runs), "fitted": len(wr), "detection_rate": det_f / det_e if det_e else math.nan}
+    f = {"fitted": len(wr)}
     if wr:
         f.update(median_worst_rotation_deg=float(np.median(wr)), p90_worst_rotation_deg=float(np.percentile(wr, 90)),
                  median_worst_translation_mm=float(np.median(wt)),
@@ -301,11 +301,42 @@ def _family_summary(runs: list) -> dict:
     if m2:
         f.update(mahalanobis2_mean=float(np.mean(m2)), mahalanobis2_median=float(np.median(m2)),
                  mahalanobis2_above_16_8=float(np.mean(np.array(m2) > 16.8)), mahalanobis2_n=len(m2))
-    for name in SOLVER_NAMES:
-        t = [r["solvers"][name]["translation_error_mm"] for r in runs if name in r.get("solvers", {})]
-        if t:
-            f[f"{name}_median_worst_translation_mm"] = float(np.median(t))
     return f
+
+
+def _family_summary(runs: list) -> dict:
+    """Family aggregate: detection rate, and per solver the median / 90th percentile of the
+    worst-camera error and the Mahalanobis^2 statistics (every solver's error is measured
+    against ours' covariance: the other solvers report none)."""
+    det_e = sum(r["detection"]["eligible_still_frames"] for r in runs)
+    det_f = sum(r["detection"]["found"] for r in runs)
+    f = {"runs": len(runs), "seeds": [r["seed"] for r in runs],
+         "detection_rate": det_f / det_e if det_e else math.nan}
+    ours = _solver_family(runs, "ours")
+    f["fitted"] = ours.pop("fitted")
+    f.update(ours)  # ours at the top level
+    f["solvers"] = {name: _solver_family(runs, name) for name in SOLVER_NAMES}
+    for name in SOLVER_NAMES:
+        if "median_worst_translation_mm" in f["solvers"][name]:
+            f[f"{name}_median_worst_translation_mm"] = f["solvers"][name]["median_worst_translation_mm"]
+    return f
+
+
+def _family_table(runs: list) -> str:
+    """One row per seed: worst-camera error and the largest Mahalanobis^2, ours and paper."""
+    lines = ["seed  lidar  plc | ours deg   mm    max m2 | paper deg  mm    max m2"]
+    for r in runs:
+        row = f"{r['seed']:4d}  {r.get('lidar', '?'):6s} {r.get('placements', 0):3d} |"
+        for name in ("ours", "paper"):
+            s = r.get("solvers", {}).get(name)
+            if not s:
+                row += "      (no fit)         |"
+                continue
+            m2 = [v["mahalanobis2"] for v in s["cameras"].values() if math.isfinite(v["mahalanobis2"])]
+            row += (f" {s['rotation_error_deg']:.4f} {s['translation_error_mm']:5.2f} "
+                    f"{max(m2) if m2 else math.nan:7.1f} |")
+        lines.append(row)
+    return "\n".join(lines)
 
 
 def main(argv: list | None = None) -> int:
@@ -315,6 +346,8 @@ def main(argv: list | None = None) -> int:
     ap.add_argument("--lidar", choices=("rs16", "vlp16", "vlp32", "hdl64", "os1"), default=None)
     ap.add_argument("--family", action="store_true", help="draw scenarios from the family")
     ap.add_argument("--seeds", type=int, default=1, help="with --family: number of consecutive seeds")
+    ap.add_argument("--first-seed", type=int, default=None,
+                    help="with --family: the first of the consecutive seeds (default: --seed)")
     ap.add_argument("--json", default=None, help="write the result JSON here")
     ap.add_argument("--plot", default=None, help="write the error-vs-poses PNG here (ours vs paper)")
     ap.add_argument("--half", action="store_true", help="render images at half size (faster)")
@@ -324,12 +357,14 @@ def main(argv: list | None = None) -> int:
         n = a.poses or 20
         curve = sorted({k for k in (3, 5, 8, 10, 15, 20, 30, 40, 60, n) if k <= n})
     runs = []
-    seeds = [a.seed + k for k in range(a.seeds)] if a.family else [a.seed]
+    first = a.seed if a.first_seed is None else a.first_seed
+    seeds = [first + k for k in range(a.seeds)] if a.family else [first]
     for s in seeds:
         runs.append(run_once(s, a.poses, a.lidar, a.family, full_size=not a.half, curve=curve))
-    out = runs[0] if len(runs) == 1 else {"method": "board", "seed": a.seed, "poses": a.poses, "family": True,
+    out = runs[0] if len(runs) == 1 else {"method": "board", "seed": first, "poses": a.poses, "family": True,
                                           "runs": runs, "summary": _family_summary(runs)}
     if len(runs) > 1:
+        print(_family_table(runs))
         print(json.dumps(out["summary"], indent=1))
     if a.plot and runs[0].get("curve"):
         plot_curve(runs[0]["curve"], a.plot)

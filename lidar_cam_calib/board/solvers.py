@@ -470,6 +470,12 @@ class OursOptions:
     use_edges: bool = True  # ring ends on the outline (False: the LiDAR gives the board plane only)
     ring_bias_sigma_m: float = 0.005  # prior of each ring's range offset (0: no ring-bias parameters)
     fixed_pixel_sigma: dict | None = None  # {cam: sigma px} instead of pixel_sigma_px (e.g. for a bound)
+    # per placement, the LiDAR's board pose may differ from the cameras' one by a small offset
+    # (in the board frame: tilt, spin, in-plane shift, shift along the normal) common to all of
+    # the placement's LiDAR points; these are its prior sigmas, re-estimated from the data
+    # (variance components). 0 or None: no offsets (the LiDAR board pose is exact up to its noise).
+    placement_offset_sigma: tuple | None = (3e-4, 3e-4, 1e-3, 5e-4)  # tilt rad, spin rad, in-plane m, normal m
+    placement_offset_floor: tuple = (2e-5, 2e-5, 5e-5, 5e-5)  # lower limits of the re-estimated sigmas
 
 
 @dataclasses.dataclass
@@ -543,9 +549,13 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
     state = {"Rc": np.array([init[c][:3, :3] for c in cams]), "tc": np.array([init[c][:3, 3] for c in cams]),
              "Rf": np.array([o.lidar.T_lidar_board[:3, :3] for o in obs]),
              "tf": np.array([o.lidar.T_lidar_board[:3, 3] for o in obs]),
-             "s": np.array([o.lidar.shrink_m for o in obs], dtype=float), "a": np.zeros(len(obs))}
+             "s": np.array([o.lidar.shrink_m for o in obs], dtype=float), "a": np.zeros(len(obs)),
+             "d": np.zeros((len(obs), 6))}
     sig = {"px": np.array([float((opt.fixed_pixel_sigma or {}).get(c, opt.pixel_sigma_px)) for c in cams]),
            "range": opt.range_sigma_m, "edge": opt.edge_sigma_m}
+    use_off = bool(opt.placement_offset_sigma) and F >= 3 and opt.use_edges
+    off_sig = np.array(opt.placement_offset_sigma if use_off else (1.0, 1.0, 1.0, 1.0), dtype=float)
+    off_comp = np.array([0, 0, 1, 2, 2, 3])  # offset component -> its sigma group
     active = np.ones(len(img["f"]), bool)  # image rows in use
     # one range offset per ring id (a spinning LiDAR's per-laser calibration error)
     ring_ids = np.unique(pl["ring"][pl["ring"] >= 0]) if opt.ring_bias_sigma_m > 0 else np.zeros(0, int)
@@ -557,12 +567,19 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
     pl_u = pl["p"] / np.linalg.norm(pl["p"], axis=1, keepdims=True)
     state["beta"] = np.zeros(nR)
     nA = 6 * nC + nR
-    BS = 8  # per placement: rotation 3, translation 3, growth, growth asymmetry
+    BS = 14 if use_off else 8  # per placement: rotation 3, translation 3, growth, asymmetry[, LiDAR offset 6]
     n_params = nA + BS * F
 
     # edge assignment and quantisation sigma from the initial board poses
+    def lidar_pose(Rf, tf, d):
+        """The board pose the LiDAR measured: the cameras' one moved by the offset (board frame)."""
+        if not use_off:
+            return Rf, tf
+        return Rf @ _exp_batch(d[:, :3]), tf + np.einsum("nij,nj->ni", Rf, d[:, 3:])
+
     def edge_setup():
-        Rf, tf = state["Rf"][ed["f"]], state["tf"][ed["f"]]
+        RL, tL = lidar_pose(state["Rf"], state["tf"], state["d"])
+        Rf, tf = RL[ed["f"]], tL[ed["f"]]
         q = np.einsum("nji,nj->ni", Rf, ed["e"] - state["s"][ed["f"]][:, None] * ed["dir"] - tf)
         dx, dy = np.abs(q[:, 0]) - a_half, np.abs(q[:, 1]) - b_half
         axis = np.where(np.abs(dx) < np.abs(dy), 0, 1)
@@ -578,17 +595,20 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
         df = dx[nA:].reshape(F, BS)
         Rc = _exp_batch(dc[:, :3]) @ state["Rc"]
         Rf = _exp_batch(df[:, :3]) @ state["Rf"]
+        d = state["d"] + df[:, 8:14] if use_off else state["d"]
         return (Rc, state["tc"] + dc[:, 3:], Rf, state["tf"] + df[:, 3:6], state["s"] + df[:, 6],
-                state["beta"] + dx[6 * nC:nA], state["a"] + df[:, 7])
+                state["beta"] + dx[6 * nC:nA], state["a"] + df[:, 7], d)
 
     def residual_at(dx):
-        Rc, tc, Rf, tf, s, beta, asym = unpack(dx)
+        Rc, tc, Rf, tf, s, beta, asym, doff = unpack(dx)
         # image
         f, c = img["f"], img["c"]
         pl_ = np.einsum("nij,nj->ni", Rf[f], img["Pb"]) + tf[f]
         pc = np.einsum("nij,nj->ni", Rc[c], pl_) + tc[c]
         w = (focal[c] / sig["px"][c] * active)[:, None]
         r_img = ((pc[:, :2] / pc[:, 2:3] - img["xn"]) * w).ravel()
+        # LiDAR residuals at the LiDAR's board pose
+        Rf, tf = lidar_pose(Rf, tf, doff)
         # plane
         fp = pl["f"]
         nrm = Rf[fp][:, :, 2]
@@ -604,10 +624,12 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
         r_s = (s - np.median(state["s"])) / opt.shrink_sigma_m
         r_b = beta / opt.ring_bias_sigma_m if nR else np.zeros(0)
         r_a = asym / opt.asymmetry_sigma_m
-        return np.concatenate([r_img, r_pl, r_ed, r_s, r_a, r_b])
+        r_d = (doff / off_sig[off_comp]).ravel() if use_off else np.zeros(0)
+        return np.concatenate([r_img, r_pl, r_ed, r_s, r_a, r_b, r_d])
 
     def retract(dx):
-        state["Rc"], state["tc"], state["Rf"], state["tf"], state["s"], state["beta"], state["a"] = unpack(dx)
+        (state["Rc"], state["tc"], state["Rf"], state["tf"], state["s"], state["beta"], state["a"],
+         state["d"]) = unpack(dx)
 
     n_img = 2 * len(img["f"])
     n_pl, n_ed = len(pl["f"]), len(ed["f"])
@@ -617,7 +639,9 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
     rows_b = n_img + n_pl + n_ed + 2 * F + np.arange(nR)
     cam_of_img = np.repeat(img["c"], 2)
     frame_of_row = np.concatenate([np.repeat(img["f"], 2), pl["f"], ed["f"], np.arange(F), np.arange(F)])
-    all_rows = np.arange(len(frame_of_row))
+    rows_d = n_img + n_pl + n_ed + 2 * F + nR + np.arange(6 * F if use_off else 0)
+    all_rows = np.concatenate([np.arange(len(frame_of_row)), rows_d])
+    frame_rows = np.concatenate([frame_of_row, np.repeat(np.arange(F), 6 if use_off else 0)])
     pl_rows_b = rows_pl[pl_has]
 
     def groups_fn():
@@ -634,7 +658,7 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
         for k in range(BS):
             d = np.zeros(n_params)
             d[nA + k::BS] = 1.0
-            gs.append((d, all_rows, nA + BS * frame_of_row + k))
+            gs.append((d, all_rows, nA + BS * frame_rows + k))
         return gs
 
     dropped = {c: [] for c in cams}
@@ -682,6 +706,12 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
             q2 = float(np.mean(ed_quant[ed_ok] ** 2))
             sig["edge"] = math.sqrt(max((q2 + sig["edge"] ** 2) * f_e - q2, (0.2 * sig["edge"]) ** 2, 1e-8))
             facs["edge"] = f_e
+        if use_off:
+            comp_of_row = np.tile(off_comp, F)
+            for g in range(4):
+                f_o = factor(rows_d[comp_of_row == g])
+                off_sig[g] = max(off_sig[g] * math.sqrt(f_o), opt.placement_offset_floor[g])
+                facs[f"offset_{g}"] = f_o
         if not changed and all(abs(v - 1) < 0.05 for v in facs.values()):
             break
 
@@ -706,6 +736,11 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
         "covariance_inflation": inflation, "ring_bias_mm": [float(1000 * b) for b in state["beta"]]}
     noise = {"pixel_sigma_px": {c: float(sig["px"][k]) for c, k in ci.items()},
              "range_sigma_m": float(sig["range"]), "edge_sigma_m": float(sig["edge"])}
+    if use_off:
+        noise["placement_offset_sigma"] = {"tilt_deg": float(np.degrees(off_sig[0])),
+                                           "spin_deg": float(np.degrees(off_sig[1])),
+                                           "in_plane_mm": float(1000 * off_sig[2]),
+                                           "normal_mm": float(1000 * off_sig[3])}
     return OursSolution(Ts, covs, cov_c, cams, poses, state["s"].copy(), noise, metrics, dropped)
 
 
