@@ -485,14 +485,14 @@ class CalibNodeBase(Node):
                 self._safe_reject(box[0][1], traceback.format_exc())
             finally:
                 self._busy = ""
+                if not self._stop.is_set():
+                    # the status that says what the job did goes out before its answer
+                    try:
+                        self._calib_status = to_plain(self.calib.status())
+                    except Exception as e:  # noqa: BLE001 - status must not raise
+                        self._calib_status = {"status_error": str(e)}
+                    self.publish_status()
                 done.set()
-            if self._stop.is_set():
-                break
-            try:
-                self._calib_status = to_plain(self.calib.status())
-            except Exception as e:  # noqa: BLE001 - status must not raise
-                self._calib_status = {"status_error": str(e)}
-            self.publish_status()
 
     def _safe_reject(self, reason: str, trace: str = "") -> None:
         """The worker never dies of its own error handling."""
