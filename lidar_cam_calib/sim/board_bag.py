@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from lidar_cam_calib.io.bag import BagWriter
+
 from lidar_cam_calib.core.geometry import quat_from_R
 from lidar_cam_calib.sim.board_world import BoardWorld, load_board_scenario
 
@@ -35,38 +37,6 @@ TOPIC_POINTS = "/lidar/points"
 T_CLOUD = "sensor_msgs/msg/PointCloud2"
 T_IMAGE = "sensor_msgs/msg/Image"
 T_INFO = "sensor_msgs/msg/CameraInfo"
-
-
-def _open_writer(bag_path: Path, compress: bool):
-    """An io.bag.BagWriter, with zstd MCAP chunk compression when the rosbags version allows."""
-    from lidar_cam_calib.io.bag import BagError, BagWriter
-
-    if bag_path.exists():
-        raise BagError(f"cannot write bag: {bag_path} already exists (use overwrite=True)")
-    if not compress:
-        return BagWriter(bag_path).open()
-
-    class _ZstdWriter(BagWriter):
-        def open(self):
-            from rosbags.rosbag2 import (
-                CompressionFormat,
-                CompressionMode,
-                StoragePlugin,
-                Writer,
-            )
-
-            w = Writer(self.path, version=self._version, storage_plugin=StoragePlugin.MCAP)
-            w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-            w.open()
-            self._writer = w
-            return self
-
-    try:
-        return _ZstdWriter(bag_path).open()
-    except Exception:  # noqa: BLE001 - any rosbags without storage compression: write uncompressed
-        if bag_path.exists():
-            shutil.rmtree(bag_path)
-        return BagWriter(bag_path).open()
 
 
 def _T_list(T: np.ndarray) -> list:
@@ -108,7 +78,7 @@ def write_board_bag(scenario, out_dir, seed: int | None = None, overwrite: bool 
     fac = RosbagsFactory()
     preset = world.preset
     counts: dict = {}
-    writer = _open_writer(bag_path, bool(sc.timeline.compress))
+    writer = BagWriter(bag_path, compress=bool(sc.timeline.compress)).open()  # refuses an existing path
     try:
         for stamp_rel, kind, name, t_true in build_events(world):
             stamp = world.start_s + stamp_rel

@@ -30,6 +30,8 @@ from typing import Optional
 import numpy as np
 import yaml
 
+from lidar_cam_calib.io.bag import BagWriter
+
 from lidar_cam_calib.core.geometry import inv_T, make_T, quat_from_R, so3_exp, so3_log
 from lidar_cam_calib.sim.lrf_world import LrfWorld
 from lidar_cam_calib.sim.scenario import load_scenario
@@ -94,36 +96,6 @@ def build_timeline(n_poses: int, tl) -> tuple[list, list, list]:
     return grid(tl.scan_hz, 0.0), grid(tl.depth_hz, tl.depth_offset_s), statics
 
 
-def _open_writer(bag_path: Path, compress: bool):
-    """An io.bag.BagWriter, with zstd MCAP chunk compression when possible."""
-    from lidar_cam_calib.io.bag import BagError, BagWriter
-
-    if bag_path.exists():
-        raise BagError(f"cannot write bag: {bag_path} already exists (use overwrite=True)")
-    if not compress:
-        return BagWriter(bag_path).open()
-
-    class _ZstdBagWriter(BagWriter):
-        # BagWriter has no compression option; open the rosbags Writer ourselves with MCAP
-        # storage-level (chunk) zstd compression, as `ros2 bag record --storage-preset-profile
-        # zstd_fast` does. Readers (mcap, rosbags, ros2 bag) decompress transparently.
-        def open(self):
-            from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
-
-            w = Writer(self.path, version=self._version, storage_plugin=StoragePlugin.MCAP)
-            w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-            w.open()
-            self._writer = w
-            return self
-
-    try:
-        return _ZstdBagWriter(bag_path).open()
-    except Exception:  # noqa: BLE001 -- older/newer rosbags without storage compression: write uncompressed
-        if bag_path.exists():
-            shutil.rmtree(bag_path)
-        return BagWriter(bag_path).open()
-
-
 def _T_yaml(T: np.ndarray) -> dict:
     return {"matrix": np.asarray(T, dtype=float).round(12).tolist(),
             "translation_m": np.asarray(T[:3, 3], dtype=float).round(12).tolist(),
@@ -173,7 +145,7 @@ def write_lrf_bag(scenario, out_dir, seed: Optional[int] = None, overwrite: bool
     events = [(t, 0, i, s) for (t, i, s) in scan_times] + [(t, 1, i, s) for (t, i, s) in depth_times]
     events.sort(key=lambda e: (e[0], e[1]))
     counts: dict = {}
-    writer = _open_writer(bag_path, bool(tl.compress))
+    writer = BagWriter(bag_path, compress=bool(tl.compress)).open()  # refuses an existing path
     try:
         for t, kind, i, s in events:
             T_wa, T_wb = pose_at(i, s)
