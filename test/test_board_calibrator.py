@@ -107,6 +107,14 @@ def test_same_poses_refused_and_moving_board_survived(frames):
         cal.add(make_frame(Ti, {"A": CAMS["A"]}, rng, stamp=float(i)))
     with pytest.raises(Exception, match="nearly the same"):
         cal.fit()
+    # the failed fit is reported by status() and not repeated on every refresh
+    calls = []
+    real_fit = cal._fit
+    cal._fit = lambda *a: calls.append(1) or real_fit(*a)
+    for _ in range(3):
+        st = cal.status()
+        assert "nearly the same" in st["advice"] and not st["done"]
+    assert calls == []
     # a moving board: the image of one placement is from 25 cm away
     cal = BoardCalibrator(BoardConfig(camera_names=["A"]))
     for f in frames[:7]:

@@ -100,6 +100,7 @@ class BoardCalibrator:
         self.last_reason = "waiting for the first placement"
         self.camera_reasons: dict = {}
         self._last = None
+        self._failed: tuple | None = None  # (placements, reason) of the last failed fit
         self.still = StillBoardDetector(self.cfg.still_time_s, self.cfg.still_tolerance_m)
 
     # ------------------------------------------------------------------
@@ -198,6 +199,15 @@ class BoardCalibrator:
         return out
 
     def fit(self, solver: str | None = None) -> CalibrationSet:
+        try:
+            cs = self._fit(solver)
+        except CalibError as e:
+            self._failed = (len(self.observations), str(e))
+            raise
+        self._failed = None
+        return cs
+
+    def _fit(self, solver: str | None = None) -> CalibrationSet:
         cfg = self.cfg
         solver = solver or cfg.solver
         if solver not in SOLVERS:
@@ -338,11 +348,14 @@ class BoardCalibrator:
         for n in cfg.camera_names:
             m = self.cameras.get(n)
             st["missing"][n] = missing_placements(placement_coverage(obs, n, m) if m is not None else {"frames": 0}, n)
-        if self._last is None and self.ready():
+        # a failed fit is not repeated on every status refresh: only when a placement was added since
+        if self._last is None and self.ready() and (self._failed is None or self._failed[0] != len(obs)):
             try:
                 self.fit()
-            except CalibError as e:
-                st["advice"] = f"fit failed: {e}"
+            except CalibError:
+                pass
+        if self._last is None and self._failed is not None:
+            st["advice"] = f"fit failed: {self._failed[1]}"
         if self._last is not None:
             done = True
             for n in cfg.camera_names:

@@ -48,7 +48,7 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, get_type_hints
+from typing import Any
 
 import cv2
 import numpy as np
@@ -64,6 +64,7 @@ from lidar_cam_calib.core.geometry import (
     so3_log,
 )
 from lidar_cam_calib.sim.lidar import ALL_FIELDS, PRESETS, LidarPreset, get_preset
+from lidar_cam_calib.sim.scenario import build_dataclass
 
 # ---------------------------------------------------------------------------------------------
 # board
@@ -296,7 +297,7 @@ class BoardScenario:
     image_scale: float = 1.0  # render every camera at this fraction of its resolution
 
     def __post_init__(self) -> None:
-        self.cameras = [c if isinstance(c, CameraSpec) else _build(CameraSpec, c, f"cameras[{i}]")
+        self.cameras = [c if isinstance(c, CameraSpec) else build_dataclass(CameraSpec, c, f"cameras[{i}]")
                         for i, c in enumerate(self.cameras)]
 
     def to_dict(self) -> dict:
@@ -313,40 +314,6 @@ def _plain(v):
     if isinstance(v, np.generic):
         return v.item()
     return v
-
-
-def _build(cls, data: Mapping[str, Any], path: str):
-    if not isinstance(data, Mapping):
-        raise ValueError(
-            f"scenario section '{path or '<root>'}' must be a mapping, got {type(data).__name__}")
-    fields = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - fields)
-    if unknown:
-        raise ValueError("unknown scenario key(s): " + ", ".join(f"{path + '.' if path else ''}{k}" for k in unknown))
-    hints = get_type_hints(cls)
-    kw = {}
-    for key, value in data.items():
-        typ = hints[key]
-        sub = f"{path}.{key}" if path else key
-        if dataclasses.is_dataclass(typ):
-            kw[key] = _build(typ, value or {}, sub)
-        elif typ is float:
-            kw[key] = float(value)
-        elif typ is int:
-            if isinstance(value, float) and not value.is_integer():
-                raise ValueError(f"scenario key '{sub}' must be an integer, got {value}")
-            kw[key] = int(value)
-        elif typ is bool:
-            if not isinstance(value, bool):
-                raise ValueError(f"scenario key '{sub}' must be true/false, got {value!r}")
-            kw[key] = value
-        elif typ in (list, tuple):
-            if not isinstance(value, (list, tuple)):
-                raise ValueError(f"scenario key '{sub}' must be a list, got {value!r}")
-            kw[key] = typ(value)
-        else:
-            kw[key] = value
-    return cls(**kw)
 
 
 def load_board_scenario(path_or_dict: str | Path | Mapping[str, Any] | BoardScenario | None) -> BoardScenario:
@@ -372,7 +339,7 @@ def load_board_scenario(path_or_dict: str | Path | Mapping[str, Any] | BoardScen
             else:
                 base[k] = v
         data = base
-    sc = _build(BoardScenario, data, "")
+    sc = build_dataclass(BoardScenario, data)
     _validate(sc)
     return sc
 

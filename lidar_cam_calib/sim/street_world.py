@@ -213,7 +213,7 @@ def load_street_scenario(path_or_dict: str | Path | Mapping[str, Any] | StreetSc
     """A :class:`StreetScenario` from a YAML path, a (partial) dict, or passed through.
 
     Missing keys keep their defaults; unknown keys raise ConfigError naming them."""
-    from lidar_cam_calib.sim.scenario import _build
+    from .scenario import build_dataclass
 
     if path_or_dict is None:
         sc = default_street_scenario()
@@ -229,7 +229,7 @@ def load_street_scenario(path_or_dict: str | Path | Mapping[str, Any] | StreetSc
         else:
             data = dict(path_or_dict)
         try:
-            sc = _build(StreetScenario, data, "")
+            sc = build_dataclass(StreetScenario, data)
         except ValueError as exc:
             raise ConfigError(str(exc)) from exc
     _validate(sc)
