@@ -54,3 +54,20 @@ def test_behind_camera_is_invalid():
     cam = CameraModel.from_K(640, 480, 500, 500, 320, 240)
     _, ok = cam.project(np.array([[0, 0, -1.0], [0, 0, 1.0], [10, 0, 1.0]]))
     assert ok.tolist() == [False, True, False]
+
+
+@pytest.mark.parametrize("model,D", MODELS[:3])
+def test_wide_angle_pixels_invert_exactly(model, D):
+    """A wide lens (f = 250 px on 640x480: up to ~58 deg off axis at the corners) inverts to
+    1e-6 px everywhere: a fixed-point undistortion was left pixels off there on a fisheye, which
+    biased every corner far from the centre."""
+    cam = CameraModel.from_K(640, 480, 250, 250, 320, 240, D=D, distortion_model=model)
+    u, v = np.meshgrid(np.linspace(0, 639, 33), np.linspace(0, 479, 25))
+    uv = np.column_stack([u.ravel(), v.ravel()])
+    rays = cam.pixels_to_rays(uv)
+    uv2, _ = cam.project(rays)
+    assert np.abs(uv2 - uv).max() < 1e-6
+    # and the rays are those of points projected there (the projection matches OpenCV's above)
+    p = np.random.default_rng(1).uniform([-1.6, -1.2, 1.0], [1.6, 1.2, 1.0], (300, 3))
+    uvp, ok = cam.project(p)
+    np.testing.assert_allclose(cam.pixels_to_rays(uvp[ok])[:, :2], p[ok, :2], atol=1e-9)

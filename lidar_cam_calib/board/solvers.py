@@ -473,8 +473,10 @@ class OursOptions:
     # per placement, the LiDAR's board pose may differ from the cameras' one by a small offset
     # (in the board frame: tilt, spin, in-plane shift, shift along the normal) common to all of
     # the placement's LiDAR points; these are its prior sigmas, re-estimated from the data
-    # (variance components). 0 or None: no offsets (the LiDAR board pose is exact up to its noise).
-    placement_offset_sigma: tuple | None = (3e-4, 3e-4, 1e-3, 5e-4)  # tilt rad, spin rad, in-plane m, normal m
+    # (variance components). None: no offsets (the LiDAR board pose is exact up to its noise); a 0
+    # entry leaves that group out. Tilt and spin are off by default: over the family their
+    # re-estimated sigmas always ended at the floor, and they cost a third of the fit time.
+    placement_offset_sigma: tuple | None = (0.0, 0.0, 1e-3, 5e-4)  # tilt rad, spin rad, in-plane m, normal m
     placement_offset_floor: tuple = (2e-5, 2e-5, 5e-5, 5e-5)  # lower limits of the re-estimated sigmas
 
 
@@ -553,9 +555,11 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
              "d": np.zeros((len(obs), 6))}
     sig = {"px": np.array([float((opt.fixed_pixel_sigma or {}).get(c, opt.pixel_sigma_px)) for c in cams]),
            "range": opt.range_sigma_m, "edge": opt.edge_sigma_m}
-    use_off = bool(opt.placement_offset_sigma) and F >= 3 and opt.use_edges
+    use_off = bool(opt.placement_offset_sigma) and any(opt.placement_offset_sigma) and F >= 3 and opt.use_edges
     off_sig = np.array(opt.placement_offset_sigma if use_off else (1.0, 1.0, 1.0, 1.0), dtype=float)
     off_comp = np.array([0, 0, 1, 2, 2, 3])  # offset component -> its sigma group
+    off_idx = np.nonzero(off_sig[off_comp] > 0)[0] if use_off else np.zeros(0, int)  # offset components fitted
+    nO = len(off_idx)
     active = np.ones(len(img["f"]), bool)  # image rows in use
     # one range offset per ring id (a spinning LiDAR's per-laser calibration error)
     ring_ids = np.unique(pl["ring"][pl["ring"] >= 0]) if opt.ring_bias_sigma_m > 0 else np.zeros(0, int)
@@ -567,7 +571,7 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
     pl_u = pl["p"] / np.linalg.norm(pl["p"], axis=1, keepdims=True)
     state["beta"] = np.zeros(nR)
     nA = 6 * nC + nR
-    BS = 14 if use_off else 8  # per placement: rotation 3, translation 3, growth, asymmetry[, LiDAR offset 6]
+    BS = 8 + nO  # per placement: rotation 3, translation 3, growth, asymmetry[, LiDAR offset components]
     n_params = nA + BS * F
 
     # edge assignment and quantisation sigma from the initial board poses
@@ -595,7 +599,10 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
         df = dx[nA:].reshape(F, BS)
         Rc = _exp_batch(dc[:, :3]) @ state["Rc"]
         Rf = _exp_batch(df[:, :3]) @ state["Rf"]
-        d = state["d"] + df[:, 8:14] if use_off else state["d"]
+        d = state["d"]
+        if nO:
+            d = d.copy()
+            d[:, off_idx] += df[:, 8:]
         return (Rc, state["tc"] + dc[:, 3:], Rf, state["tf"] + df[:, 3:6], state["s"] + df[:, 6],
                 state["beta"] + dx[6 * nC:nA], state["a"] + df[:, 7], d)
 
@@ -624,7 +631,7 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
         r_s = (s - np.median(state["s"])) / opt.shrink_sigma_m
         r_b = beta / opt.ring_bias_sigma_m if nR else np.zeros(0)
         r_a = asym / opt.asymmetry_sigma_m
-        r_d = (doff / off_sig[off_comp]).ravel() if use_off else np.zeros(0)
+        r_d = (doff[:, off_idx] / off_sig[off_comp[off_idx]]).ravel() if nO else np.zeros(0)
         return np.concatenate([r_img, r_pl, r_ed, r_s, r_a, r_b, r_d])
 
     def retract(dx):
@@ -639,9 +646,9 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
     rows_b = n_img + n_pl + n_ed + 2 * F + np.arange(nR)
     cam_of_img = np.repeat(img["c"], 2)
     frame_of_row = np.concatenate([np.repeat(img["f"], 2), pl["f"], ed["f"], np.arange(F), np.arange(F)])
-    rows_d = n_img + n_pl + n_ed + 2 * F + nR + np.arange(6 * F if use_off else 0)
+    rows_d = n_img + n_pl + n_ed + 2 * F + nR + np.arange(nO * F)
     all_rows = np.concatenate([np.arange(len(frame_of_row)), rows_d])
-    frame_rows = np.concatenate([frame_of_row, np.repeat(np.arange(F), 6 if use_off else 0)])
+    frame_rows = np.concatenate([frame_of_row, np.repeat(np.arange(F), nO)])
     pl_rows_b = rows_pl[pl_has]
 
     def groups_fn():
@@ -707,8 +714,8 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
             sig["edge"] = math.sqrt(max((q2 + sig["edge"] ** 2) * f_e - q2, (0.2 * sig["edge"]) ** 2, 1e-8))
             facs["edge"] = f_e
         if use_off:
-            comp_of_row = np.tile(off_comp, F)
-            for g in range(4):
+            comp_of_row = np.tile(off_comp[off_idx], F)
+            for g in np.unique(off_comp[off_idx]):
                 f_o = factor(rows_d[comp_of_row == g])
                 off_sig[g] = max(off_sig[g] * math.sqrt(f_o), opt.placement_offset_floor[g])
                 facs[f"offset_{g}"] = f_o
@@ -737,10 +744,10 @@ def solve_ours(obs: list, board: BoardGeometry, cameras: dict, init: dict, optio
     noise = {"pixel_sigma_px": {c: float(sig["px"][k]) for c, k in ci.items()},
              "range_sigma_m": float(sig["range"]), "edge_sigma_m": float(sig["edge"])}
     if use_off:
-        noise["placement_offset_sigma"] = {"tilt_deg": float(np.degrees(off_sig[0])),
-                                           "spin_deg": float(np.degrees(off_sig[1])),
-                                           "in_plane_mm": float(1000 * off_sig[2]),
-                                           "normal_mm": float(1000 * off_sig[3])}
+        vals = {"tilt_deg": float(np.degrees(off_sig[0])), "spin_deg": float(np.degrees(off_sig[1])),
+                "in_plane_mm": float(1000 * off_sig[2]), "normal_mm": float(1000 * off_sig[3])}
+        fitted = set(off_comp[off_idx].tolist())
+        noise["placement_offset_sigma"] = {k: v for g, (k, v) in enumerate(vals.items()) if g in fitted}
     return OursSolution(Ts, covs, cov_c, cams, poses, state["s"].copy(), noise, metrics, dropped)
 
 

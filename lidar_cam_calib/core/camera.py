@@ -98,16 +98,62 @@ class CameraModel:
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
         return np.stack([xd, yd], axis=1)
 
-    def undistort(self, xd: np.ndarray, iterations: int = 20) -> np.ndarray:
-        """Inverse of :meth:`distort` by fixed-point iteration (N,2)."""
+    def undistort(self, xd: np.ndarray, iterations: int = 30) -> np.ndarray:
+        """Inverse of :meth:`distort` (N,2), by Newton's method.
+
+        A fixed-point iteration converges too slowly where the distortion compresses strongly
+        (a fisheye beyond ~50 deg off axis was left pixels off after 20 steps), so:
+        ``equidistant`` solves theta_d = theta (1 + k1 theta^2 + ...) for theta per point (1-D
+        Newton) and ``plumb_bob`` / ``rational_polynomial`` take 2-D Newton steps with the
+        Jacobian of :meth:`distort`, until the residual is below 1e-12."""
         xd = np.asarray(xd, dtype=float)
         if not self.is_distorted:
             return xd.copy()
+        if self.distortion_model == "equidistant":
+            return self._undistort_equidistant(xd, iterations)
         x = xd.copy()
+        h = 1e-7
         for _ in range(iterations):
-            err = self.distort(x) - xd
-            x = x - err
+            f0 = self.distort(x)
+            err = f0 - xd
+            if not np.any(np.abs(err) > 1e-12):
+                break
+            jx = (self.distort(x + [h, 0.0]) - f0) / h
+            jy = (self.distort(x + [0.0, h]) - f0) / h
+            det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
+            ok = np.abs(det) > 1e-12
+            dets = np.where(ok, det, 1.0)
+            dx = np.where(ok, (jy[:, 1] * err[:, 0] - jy[:, 0] * err[:, 1]) / dets, err[:, 0])
+            dy = np.where(ok, (-jx[:, 1] * err[:, 0] + jx[:, 0] * err[:, 1]) / dets, err[:, 1])
+            step = np.stack([dx, dy], axis=1)
+            # backtracking: a step is taken only where it lowers the residual (beyond the radius
+            # where the polynomial folds back there is no inverse; the point stays where it was)
+            e0 = np.sum(err ** 2, axis=1)
+            moved = np.zeros(len(x), bool)
+            for _ in range(6):
+                xn = x - step
+                better = (np.sum((self.distort(xn) - xd) ** 2, axis=1) < e0) & ~moved
+                x[better] = xn[better]
+                moved |= better
+                step *= 0.5
+            if not moved.any():
+                break
         return x
+
+    def _undistort_equidistant(self, xd: np.ndarray, iterations: int) -> np.ndarray:
+        k = self._coeffs()
+        thd = np.hypot(xd[:, 0], xd[:, 1])
+        th = np.minimum(thd, 1.5)
+        for _ in range(iterations):
+            t2 = th * th
+            f = th * (1 + k[0] * t2 + k[1] * t2**2 + k[2] * t2**3 + k[3] * t2**4) - thd
+            df = 1 + 3 * k[0] * t2 + 5 * k[1] * t2**2 + 7 * k[2] * t2**3 + 9 * k[3] * t2**4
+            step = f / np.where(np.abs(df) > 1e-9, df, 1e-9)
+            th = np.clip(th - step, 0.0, np.pi / 2 - 1e-6)
+            if not np.any(np.abs(step) > 1e-13):
+                break
+        scale = np.where(thd > 1e-12, np.tan(th) / np.maximum(thd, 1e-12), 1.0)
+        return xd * scale[:, None]
 
     # -- projection ------------------------------------------------------------
     def project(self, pts_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
