@@ -24,6 +24,26 @@ def test_static_detector_fires_once_per_stop():
     assert sum(fired) == 1
 
 
+def test_static_detector_follows_the_laser_noise():
+    """A noisy laser standing still is static; a robot creeping 1.5 mm per scan (3 mm with a
+    25 mm-noise laser) is not (a fixed 3 cm tolerance on the raw median change took every one of
+    these creeps as a stop)."""
+    rng = np.random.default_rng(1)
+    ang = np.linspace(-2.0, 2.0, 540)
+    base = 3.0 + 1.5 * np.abs(np.sin(1.3 * ang))            # a room: ranges vary along the scan
+    for sigma, creep_m in ((0.002, 0.0015), (0.01, 0.0015), (0.025, 0.003)):
+        d = C.StaticDetector(static_time_s=1.0)
+        fired = [d.update(0.1 * t, base + rng.normal(0, sigma, base.size)) for t in range(25)]
+        assert sum(fired) == 1, sigma
+        assert d.last_threshold_m >= d.last_change_m
+        d = C.StaticDetector(static_time_s=1.0)
+        creep = [d.update(0.1 * t, base - creep_m * t * np.cos(ang) + rng.normal(0, sigma, base.size))
+                 for t in range(40)]
+        assert not any(creep), sigma
+    # the threshold rises with the noise: 25 mm noise needs more than the 5 mm floor
+    assert d.last_threshold_m > 0.008
+
+
 def test_rejections_have_reasons(monkeypatch):
     cal = C.LrfCalibrator()
     v = cal.add(_frame(1.0))

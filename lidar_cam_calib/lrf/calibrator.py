@@ -281,27 +281,60 @@ class LrfCalibrator:
 
 class StaticDetector:
     """Fires once per stop: ``update`` returns True the first time the scan has
-    been static (median |range change| vs the scan at the start of the still
-    period < ``range_tol_m``) for ``static_time_s``; re-arms after motion.
-    ``still`` says whether the last scan matched the stop's first one."""
+    been static for ``static_time_s``; re-arms after motion. ``still`` says
+    whether the last scan matched the stop's first one.
 
-    def __init__(self, static_time_s: float = 1.0, range_tol_m: float = 0.01):
+    Static means: the range change against the stop's first scan, smoothed along the
+    beams over ``smooth_beams`` (a motion of the scanner changes neighbouring beams alike,
+    noise does not), has a median magnitude below the larger of ``range_tol_m`` and
+    ``noise_factor`` times the noise of that smoothed change, which is measured from the
+    same two scans (the beam-to-beam scatter of the change). So a noisy laser does not read
+    as moving, and a slowly creeping robot (a few mm per scan at the end of a deceleration)
+    is not taken as stopped, whatever the laser's noise."""
+
+    def __init__(self, static_time_s: float = 1.0, range_tol_m: float = 0.005, smooth_beams: int = 15,
+                 noise_factor: float = 1.3):
         self.static_time_s = static_time_s
         self.range_tol_m = range_tol_m
+        self.smooth_beams = max(1, int(smooth_beams))
+        self.noise_factor = noise_factor
         self._ref = None
         self._since = None
         self._fired = False
         self.still = False
+        self.last_change_m = math.nan     # the statistic and its threshold at the last update
+        self.last_threshold_m = math.nan
+
+    def change(self, r: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
+        """(median |smoothed range change|, threshold) between two scans; (inf, thr) when
+        they share no valid beam."""
+        d = r - ref
+        ok = np.isfinite(d)
+        if ok.sum() < 3:
+            return math.inf, self.range_tol_m
+        w = min(self.smooth_beams, int(ok.sum()))
+        k = np.ones(w)
+        dz = np.where(ok, d, 0.0)
+        num = np.convolve(dz, k, mode="same")
+        cnt = np.convolve(ok.astype(float), k, mode="same")
+        good = ok & (cnt >= 0.5 * w)
+        if not good.any():
+            return math.inf, self.range_tol_m
+        sm = num[good] / cnt[good]
+        hf = d[good] - sm
+        sig_d = 1.4826 * float(np.median(np.abs(hf - np.median(hf)))) * math.sqrt(w / max(w - 1, 1))
+        thr = max(self.range_tol_m, self.noise_factor * sig_d / math.sqrt(w))
+        return float(np.median(np.abs(sm))), thr
 
     def update(self, stamp_s: float, ranges) -> bool:
         r = np.asarray(ranges, dtype=float).ravel()
+        r = np.where(np.isfinite(r), r, np.nan)
         self.still = False
         if self._ref is None or self._ref.shape != r.shape:
             self._ref, self._since, self._fired = r, stamp_s, False
             return False
-        ok = np.isfinite(r) & np.isfinite(self._ref)
-        moved = (not np.any(ok)) or float(np.median(np.abs(r[ok] - self._ref[ok]))) > self.range_tol_m
-        if moved:
+        self.last_change_m, self.last_threshold_m = self.change(r, self._ref)
+        if not self.last_change_m <= self.last_threshold_m:
             self._ref, self._since, self._fired = r, stamp_s, False
             return False
         self.still = True

@@ -56,8 +56,10 @@ class LrfCalibNode(CalibNodeBase):
                            "static for static_time_s) or both.", choices=TRIGGERS)
         self.declare_param("static_time_s", 1.0, "The scan must be unchanged this long before an automatic capture.",
                            range=(0.1, 60.0))
-        self.declare_param("static_range_tol_m", 0.03, "Median |range change| below which the scan counts as "
-                           "static.", range=(0.001, 1.0))
+        self.declare_param("static_range_tol_m", 0.005, "Smallest range change that counts as motion: the "
+                           "median |range change| against the stop's first scan, smoothed over 15 beams. The "
+                           "threshold rises above it with the laser noise measured from the scans.",
+                           range=(0.001, 1.0))
         self.declare_param("sync_slop_s", 0.05, "Largest stamp difference between a scan and a depth image that "
                            "are paired.", range=(0.001, 1.0))
 
