@@ -25,6 +25,11 @@ Pipeline for one sweep:
    centre and axes), giving the board pose ``T_lidar_board`` and the 54
    virtual corners of eq. 1.
 
+Without ring ends (``use_edges`` False: a dense scanner without rings) only the board's plane
+is used: the sweep's planes are taken one after the other, each split into connected parts, and
+the board is the part a rectangle of the known size holds (what touches it, a stand's arms, is
+left outside); its points well inside that rectangle give the plane (:func:`_plane_only_search`).
+
 The board pose has a two-fold ambiguity left (rotation by 180 deg about the
 board normal); :mod:`lidar_cam_calib.board.solvers` resolves it against the
 image. The z axis always points towards the LiDAR.
@@ -57,7 +62,8 @@ class LidarDetectConfig:
     cluster_angle_deg: float = 4.0
     cluster_range_ratio: float = 0.06
     size_tolerance: float = 0.15
-    use_edges: bool = True  # False: a dense scanner without rings; the board's plane and outline only
+    use_edges: bool = True  # False: a dense scanner without rings; the board's plane only
+    plane_only_margin_m: float = 0.02  # use_edges False: board points at least this far inside the outline
 
 
 @dataclasses.dataclass
@@ -272,7 +278,15 @@ def _evaluate(cand: np.ndarray, allp: np.ndarray, ring_all: np.ndarray | None, b
     L, S = max(w, h), min(w, h)
     W, H = board.size_m
     tol = cfg.size_tolerance
-    if L > W * (1 + tol) + 0.05 or S > H * (1 + tol) + 0.05:
+    if not cfg.use_edges:
+        # plane only: what touches the board (a stand's arms) may be in the cluster; the
+        # known-size rectangle in _plane_only_board cuts it off, so the cluster is larger than
+        # the board only when that rectangle holds little of it
+        frac = _fit_box(q2, board.size_m)[3] / len(q2)
+        if frac < 0.6:
+            raise BoardNotFound(f"planar cluster is {L:.2f} x {S:.2f} m, larger than the {W} x {H} m board "
+                                f"(it holds only {frac:.0%} of the plane's points)")
+    elif L > W * (1 + tol) + 0.05 or S > H * (1 + tol) + 0.05:
         raise BoardNotFound(f"planar cluster is {L:.2f} x {S:.2f} m, larger than the {W} x {H} m board")
     if L < 0.5 * W or S < 0.25 * H:
         raise BoardNotFound(f"planar cluster is {L:.2f} x {S:.2f} m, much smaller than the {W} x {H} m board")
@@ -280,7 +294,8 @@ def _evaluate(cand: np.ndarray, allp: np.ndarray, ring_all: np.ndarray | None, b
     centre = n * (-d) + cx * u + cy * v
     # every point of the sweep on the plane near the candidate
     dist = np.abs(allp @ n + d)
-    near = (dist < cfg.plane_threshold_m) & (np.linalg.norm(allp - centre, axis=1) < 0.5 * math.hypot(W, H) + 0.1)
+    radius = 0.5 * math.hypot(max(W, L), max(H, S)) + 0.1 if not cfg.use_edges else 0.5 * math.hypot(W, H) + 0.1
+    near = (dist < cfg.plane_threshold_m) & (np.linalg.norm(allp - centre, axis=1) < radius)
     P = allp[near]
     ring = recover_rings(P) if ring_all is None else ring_all[near]
     # refine plane on those points (robust: 3 MAD)
@@ -294,7 +309,7 @@ def _evaluate(cand: np.ndarray, allp: np.ndarray, ring_all: np.ndarray | None, b
         n, d = -n, -d
     u, v = _plane_basis(n)
     if not cfg.use_edges:
-        return _plane_only_board(P, n, d, board, mode, thr, cfg)
+        return _plane_only_board(P, n, d, board, mode, thr, cfg, allp)
     ends, steps, dirs, srngs, nr = _ring_ends(P, ring, n, d)
     rngs, side = np.abs(srngs), np.sign(srngs)
     if nr < cfg.min_rings:
@@ -375,21 +390,252 @@ def _evaluate_peeling(cand, allp, ring_all, board, cfg, rng, mode, thr) -> Lidar
     raise first
 
 
-def _plane_only_board(P, n, d, board, mode, thr, cfg) -> LidarBoard:
-    """Board from its plane and the minimum-area rectangle of its points (no ring ends)."""
+def _box_count(q: np.ndarray, th: float, nw: int, nh: int, ne: int, bin_m: float) -> tuple:
+    """Best place of an (nw x nh)-bin box with its long side at angle ``th`` over the points ``q``:
+    most points inside and fewest in the ``ne``-bin band around it (score inside - 2 x band).
+    Returns (cx, cy, score, points inside)."""
+    c, s = math.cos(th), math.sin(th)
+    x = q[:, 0] * c + q[:, 1] * s
+    y = -q[:, 0] * s + q[:, 1] * c
+    pad = ne + 1
+    x0, y0 = x.min() - pad * bin_m, y.min() - pad * bin_m
+    ix = ((x - x0) / bin_m).astype(np.int64)
+    iy = ((y - y0) / bin_m).astype(np.int64)
+    shape = (int(ix.max()) + nw + 2 * pad + 1, int(iy.max()) + nh + 2 * pad + 1)
+    hist = np.bincount(ix * shape[1] + iy, minlength=shape[0] * shape[1]).reshape(shape).astype(float)
+    ii = np.zeros((shape[0] + 1, shape[1] + 1))
+    ii[1:, 1:] = hist.cumsum(0).cumsum(1)
+
+    def boxes(w, h):  # sums of every w x h window, indexed by its lower corner
+        return ii[w:, h:] - ii[:-w, h:] - ii[w:, :-h] + ii[:-w, :-h]
+    inner = boxes(nw, nh)
+    outer = boxes(nw + 2 * ne, nh + 2 * ne)
+    # align: the inner window at (a, b) sits in the outer one at (a - ne, b - ne)
+    inner_c = inner[ne:ne + outer.shape[0], ne:ne + outer.shape[1]]
+    score = inner_c - 2.0 * (outer - inner_c)
+    a, b = np.unravel_index(int(np.argmax(score)), score.shape)
+    bx, by = x0 + (a + ne + nw / 2) * bin_m, y0 + (b + ne + nh / 2) * bin_m
+    return bx * c - by * s, bx * s + by * c, float(score[a, b]), int(inner_c[a, b])
+
+
+def _best_box(q: np.ndarray, size_m: tuple, th0: float, bin_m: float) -> tuple:
+    """The known-size rectangle (long side ``size_m[0]``) that holds the most 2D points ``q``
+    with the fewest just around it (what touches the board, a stand's arms, crosses that band
+    only where it touches): every turn (3 deg steps from ``th0``, then 0.5 deg steps about the
+    best), every position on a ``bin_m`` grid (box sums of a 2D histogram). Returns
+    (cx, cy, theta, points inside)."""
+    W, H = size_m
+    nw, nh = max(1, int(round(W / bin_m))), max(1, int(round(H / bin_m)))
+    ne = max(1, int(round(0.1 * H / bin_m)))
+    best = (0.0, 0.0, th0, -math.inf, 0)
+    for th in th0 + np.radians(np.arange(0.0, 180.0, 3.0)):
+        cx, cy, sc, cnt = _box_count(q, th, nw, nh, ne, bin_m)
+        if sc > best[3]:
+            best = (cx, cy, th, sc, cnt)
+    th1 = best[2]
+    for th in th1 + np.radians(np.arange(-2.5, 2.51, 0.5)):
+        cx, cy, sc, cnt = _box_count(q, th, nw, nh, ne, bin_m)
+        if sc > best[3]:
+            best = (cx, cy, th, sc, cnt)
+    return best[0], best[1], best[2], best[4]
+
+
+def _fit_box(q: np.ndarray, size_m: tuple) -> tuple:
+    """:func:`_best_box` started from the minimum-area rectangle, binned by the point spacing."""
     import cv2
+    (_cx, _cy), (w, h), ang = cv2.minAreaRect(q.astype(np.float32))
+    th0 = math.radians(ang) if w >= h else math.radians(ang) + math.pi / 2
+    # point spacing sets the histogram bin (a few points per bin on the board)
+    spacing = math.sqrt(max(w * h, 1e-6) / max(len(q), 1))
+    bin_m = float(np.clip(2.0 * spacing, 0.005, 0.05))
+    return _best_box(q, size_m, th0, bin_m)
+
+
+def _plane_only_search(p: np.ndarray, board: BoardGeometry, cfg: LidarDetectConfig, rng: np.random.Generator,
+                       reasons: list, mode: str = "geometry", thr=None, max_planes: int = 10):
+    """Board by geometry for a dense scanner without rings (``use_edges`` False): the sweep's
+    planes one after the other (RANSAC, then removed), each split into its connected parts; a
+    part is the board when a rectangle of the known size holds most of it (what is left
+    outside: a stand's arms, a hand) and covers it (:func:`_plane_only_board`). The part with
+    the most board points wins. Returns the LidarBoard or None (``reasons`` says why)."""
+    from scipy.spatial import cKDTree
+    W, H = board.size_m
+    rest = np.arange(len(p))
+    best = None
+    thr_m = min(cfg.plane_threshold_m, 0.02)
+    for _ in range(max_planes):
+        if len(rest) < max(cfg.min_points, 0 if best is None else len(best.points)):
+            break  # what is left cannot hold a larger board
+        try:
+            n, d, inl = ransac_plane(p[rest], thr_m, 300, rng, min_inliers=cfg.min_points)
+        except FitError:
+            break
+        Q = p[rest[inl]]
+        rest = rest[~inl]
+        sample = Q[rng.choice(len(Q), min(len(Q), 2000), replace=False)]
+        nn = cKDTree(Q).query(sample, k=2)[0][:, 1]
+        u, v = _plane_basis(n)
+        q2 = np.column_stack([Q @ u, Q @ v])
+        # connected parts on the plane: gaps of a few point spacings first; where that finds no
+        # board (a spinning LiDAR's rings cross the board far apart), gaps up to a third of
+        # the board's short side
+        for cell in (float(np.clip(2.0 * np.median(nn), 0.005, 0.05)), min(H / 6.0, 0.12)):
+            lab = _raster_components(q2, cell)
+            b = _best_part(Q, lab, board, cfg, reasons, mode, thr, p, cell)
+            if b is not None:
+                break
+        if b is not None and (best is None or len(b.points) > len(best.points)):
+            best = b
+    return best
+
+
+def _raster_components(q2: np.ndarray, cell: float) -> np.ndarray:
+    """Label per 2D point: 8-connected occupied cells of a ``cell`` grid."""
+    from scipy import ndimage
+    ij = np.floor((q2 - q2.min(axis=0)) / cell).astype(np.int64)
+    shape = tuple(int(v) + 1 for v in ij.max(axis=0))
+    if shape[0] * shape[1] > 4e7:  # a plane kilometres wide at this cell: one part
+        return np.zeros(len(q2), dtype=np.int64)
+    occ = np.zeros(shape, dtype=bool)
+    occ[ij[:, 0], ij[:, 1]] = True
+    lab, _n = ndimage.label(occ, structure=np.ones((3, 3), dtype=int))
+    return lab[ij[:, 0], ij[:, 1]]
+
+
+def _best_part(Q, lab, board, cfg, reasons, mode, thr, allp=None, gap_m: float = 0.0):
+    """The connected part of plane points ``Q`` (labels ``lab``) with most board points, or None."""
+    W, H = board.size_m
+    best = None
+    ids, counts = np.unique(lab, return_counts=True)
+    for k in np.argsort(-counts)[:5]:
+        if counts[k] < cfg.min_points:
+            break
+        C = Q[lab == ids[k]]
+        try:
+            n_c, d_c = fit_plane_lsq(C)
+            if d_c < 0:
+                n_c, d_c = -n_c, -d_c
+            u, v = _plane_basis(n_c)
+            q2 = np.column_stack([C @ u, C @ v])
+            L, S = _extent(q2)
+            if L < 0.5 * W or S < 0.25 * H:
+                raise BoardNotFound(f"planar part is {L:.2f} x {S:.2f} m, much smaller than the {W} x {H} m board")
+            frac = _fit_box(q2, board.size_m)[3] / len(C)
+            if frac < 0.5:
+                raise BoardNotFound(f"planar part is {L:.2f} x {S:.2f} m, larger than the {W} x {H} m board "
+                                    f"(a board-sized rectangle holds only {frac:.0%} of it)")
+            b = _plane_only_board(C, n_c, d_c, board, mode, thr, cfg, allp, gap_m)
+        except (BoardNotFound, FitError) as e:
+            reasons.append(f"{mode}: planar part of {len(C)} points: {e}")
+            continue
+        if best is None or len(b.points) > len(best.points):
+            best = b
+    return best
+
+
+def _extent(q2: np.ndarray) -> tuple:
+    import cv2
+    (_cx, _cy), (w, h), _ang = cv2.minAreaRect(q2.astype(np.float32))
+    return max(w, h), min(w, h)
+
+
+def _plane_only_board(P, n, d, board, mode, thr, cfg, allp: np.ndarray | None = None,
+                      gap_m: float = 0.0) -> LidarBoard:
+    """Board from its plane only (no ring ends), for a dense scanner without rings.
+
+    The plane points near the candidate may hold what touches the board (a stand's arms, a
+    hand) and mixed returns at its edges; both tilt a plane fitted to all of them. So the
+    board is the rectangle of the known size that holds the most plane points, the board
+    points are those inside it by ``cfg.plane_only_margin_m`` (away from the edges) and on the
+    plane (3 robust sigmas), and the plane is refitted to them. A candidate whose plane goes
+    on around the rectangle (a wall) is refused."""
+    W, H = board.size_m
+    Pall = P
     u, v = _plane_basis(n)
     base = -d * n
     q = np.column_stack([(P - base) @ u, (P - base) @ v])
-    (cx, cy), (w, h), ang = cv2.minAreaRect(q.astype(np.float32))
-    th = math.radians(ang) if w >= h else math.radians(ang) + math.pi / 2
-    xa = math.cos(th) * u + math.sin(th) * v
+    cx, cy, th, _cnt = _fit_box(q, (W, H))
+    c, s = math.cos(th), math.sin(th)
+    x = (q[:, 0] - cx) * c + (q[:, 1] - cy) * s
+    y = -(q[:, 0] - cx) * s + (q[:, 1] - cy) * c
+    m = min(float(cfg.plane_only_margin_m), 0.25 * H)
+    inner = (np.abs(x) < W / 2 - m) & (np.abs(y) < H / 2 - m)
+    # the plane around the rectangle, in every point of the sweep (a part cut out of a wall by
+    # sparse sampling is still in a wall)
+    if allp is None:
+        xs, ys = x, y
+    else:
+        on = np.abs(allp @ n + d) < min(cfg.plane_threshold_m, 0.02)
+        qa = np.column_stack([(allp[on] - base) @ u, (allp[on] - base) @ v])
+        xs = (qa[:, 0] - cx) * c + (qa[:, 1] - cy) * s
+        ys = -(qa[:, 0] - cx) * s + (qa[:, 1] - cy) * c
+    box = (np.abs(xs) < W / 2) & (np.abs(ys) < H / 2)
+    band = ~box & (np.abs(xs) < W / 2 + 0.1 * H) & (np.abs(ys) < H / 2 + 0.1 * H)
+    band_area = (W + 0.2 * H) * (1.2 * H) - W * H
+    dens_in = max(box.sum(), 1) / (W * H)
+    dens_band = band.sum() / band_area
+    if dens_band > 0.5 * dens_in:
+        raise BoardNotFound(f"the plane goes on around the {W} x {H} m board ({dens_band / dens_in:.0%} of its "
+                            "point density just outside it): a wall or a larger panel, not the board")
+    if inner.sum() < cfg.min_points:
+        raise BoardNotFound(f"only {int(inner.sum())} points inside the {W} x {H} m board")
+    bin_m = max(0.01, 0.1 * H, 2.0 * gap_m)  # coverage in cells no finer than the gaps allowed
+    occ = np.unique(np.column_stack([np.floor(x[inner] / bin_m), np.floor(y[inner] / bin_m)]), axis=0)
+    n_bins = max(1, int(round((W - 2 * m) / bin_m)) * int(round((H - 2 * m) / bin_m)))
+    if len(occ) < 0.6 * n_bins:
+        raise BoardNotFound(f"the points cover only {min(1.0, len(occ) / n_bins):.0%} of the {W} x {H} m board")
+    # the board points: every point of the sweep inside the rectangle by the margin and on the
+    # plane; the plane refitted to them (3 robust sigmas) and the points taken again, until stable
+    src = P if allp is None else allp
+    xa = c * u + s * v
+    ctr = base + cx * u + cy * v
+    thr_z = float(cfg.plane_threshold_m)
+    n0 = n.copy()
+    Q = P[inner]
+    for _ in range(6):
+        xa = xa - (xa @ n) * n
+        xa /= np.linalg.norm(xa)
+        ya = np.cross(n, xa)
+        ctr = ctr - (ctr @ n + d) * n
+        rel = src - ctr
+        sel = (np.abs(rel @ xa) < W / 2 - m) & (np.abs(rel @ ya) < H / 2 - m) & (np.abs(src @ n + d) < thr_z)
+        if sel.sum() < cfg.min_points:
+            break
+        Q = src[sel]
+        for _ in range(3):
+            n2, d2 = fit_plane_lsq(Q)
+            res = Q @ n2 + d2
+            mad = float(np.median(np.abs(res - np.median(res)))) * 1.4826
+            keep = np.abs(res) < max(3 * mad, 1e-4)
+            if keep.all():
+                break
+            Q = Q[keep]
+        n2, d2 = fit_plane_lsq(Q)
+        if n2 @ n0 < 0:
+            n2, d2 = -n2, -d2
+        moved = math.degrees(math.acos(min(1.0, abs(float(n2 @ n))))) + 1000 * abs(d2 - d)
+        n, d = n2, d2
+        thr_z = max(4.0 * mad, 0.002)
+        if moved < 1e-3:
+            break
+    P = Q
+    if d < 0:
+        n, d = -n, -d
+    # the rectangle's axes and centre on the refitted plane
+    xa = xa - (xa @ n) * n
+    xa /= np.linalg.norm(xa)
+    ctr = ctr - (ctr @ n + d) * n
     T = np.eye(4)
     T[:3, :3] = np.column_stack([xa, np.cross(n, xa), n])
-    T[:3, 3] = base + cx * u + cy * v
+    T[:3, 3] = ctr
     prms = float(np.sqrt(np.mean((P @ n + d) ** 2)))
+    # diagnostic: the extent of the plane points in and just around the rectangle
+    near = (np.abs(x) < W / 2 + 0.1 * H) & (np.abs(y) < H / 2 + 0.1 * H) & \
+        (np.abs(Pall @ n + d) < max(3 * prms, 0.003))
+    size_fit = (float(np.ptp(np.percentile(x[near], [0.5, 99.5]))), float(np.ptp(np.percentile(y[near], [0.5, 99.5]))))\
+        if near.sum() > 10 else (math.nan, math.nan)
     z3, z1 = np.zeros((0, 3)), np.zeros(0)
-    return LidarBoard(T, P, z3, z1, z3, z1, 0, prms, 0.0, 0.0, mode, thr, (max(w, h), min(w, h)), [], None, z1)
+    return LidarBoard(T, P, z3, z1, z3, z1, 0, prms, 0.0, 0.0, mode, thr, size_fit, [], None, z1)
 
 
 def _auto_thresholds(intensity: np.ndarray) -> list:
@@ -484,7 +730,12 @@ def detect_board(points: np.ndarray, intensity: np.ndarray | None, ring: np.ndar
     if best is None:
         if not usable:
             reasons.append(f"{why}: searched by geometry")
-        consider(np.ones(len(p), bool), "geometry", None)
+        if cfg.use_edges:
+            consider(np.ones(len(p), bool), "geometry", None)
+        else:
+            b = _plane_only_search(p, board, cfg, rng, reasons)
+            if b is not None:
+                best = (len(b.points), b)
     if best is None:
         uniq = []
         for s in reasons:
