@@ -106,7 +106,13 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
             print("camera-to-camera: " + ", ".join(sorted(extras)))
         if st.get("advice"):
             print(f"  advice: {st['advice']}")
-        print(f"  result file: {st.get('result_file') or out}" + (f"; overlay: {a.overlay}" if a.overlay else ""))
+        overlays = ""
+        if a.overlay:
+            # the node writes one PNG per named camera: OVERLAY with _<camera> before the extension
+            stem, ext = os.path.splitext(a.overlay)
+            names = [n for n in oc.result.results if n]
+            overlays = "; overlay: " + ", ".join([f"{stem}_{n}{ext or '.png'}" for n in names] or [a.overlay])
+        print(f"  result file: {st.get('result_file') or out}{overlays}")
     if cand:
         print(f"error: the new calibration was not adopted: {cand['reason']} "
               f"(candidate sigma {cand.get('sigma')}, observations {cand.get('observations')})", file=sys.stderr)
@@ -144,6 +150,20 @@ def _cmd_kitti2bag(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_lcct2bag(a: argparse.Namespace) -> int:
+    from .io.bag import BagError
+    from .io.lcct import write_lcct_bag
+
+    try:
+        bag, truth = write_lcct_bag(a.folder, a.out, overwrite=a.overwrite,
+                                    encoding="mono8" if a.mono else "bgr8")
+    except (BagError, OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {bag}\ntruth {truth} (the toolbox's own result, not an independent truth)")
+    return 0
+
+
 def _config_path(*parts: str) -> str:
     here = os.path.dirname(os.path.abspath(__file__))
     p = os.path.join(here, "..", "config", *parts)
@@ -166,7 +186,7 @@ def _benches() -> dict:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lidar-cam-calib", description=__doc__, epilog=EXIT_CODES,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="cmd", required=True, metavar="{calibrate,simulate,kitti2bag,bench}")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="{calibrate,simulate,kitti2bag,lcct2bag,bench}")
     names = list(methods.METHODS)
     listing = "\n".join(f"  {n:<11} {s.summary}" for n, s in methods.METHODS.items())
 
@@ -204,6 +224,16 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--max-frames", type=int)
     k.add_argument("--overwrite", action="store_true")
 
+    lc = sub.add_parser("lcct2bag", help="turn the CMU LCCT checkerboard + 3D laser sample into an MCAP bag",
+                        description="The lcct_checkerboard_3dlaser folder (15 poses, .xyz scans, images, Bouguet "
+                                    "calibration) -> OUT/lcct_checkerboard_3dlaser/ with PointCloud2 (x, y, z), "
+                                    "Image and CameraInfo, each pose held for 3 sweeps, and truth.yaml with the "
+                                    "toolbox's own result. Calibrate it with --params config/board_lcct.yaml.")
+    lc.add_argument("folder")
+    lc.add_argument("out")
+    lc.add_argument("--mono", action="store_true", help="mono8 images instead of bgr8")
+    lc.add_argument("--overwrite", action="store_true")
+
     benches = _benches()
     b = sub.add_parser("bench", add_help=False, help="benchmarks: " + ", ".join(benches),
                        description="Run a benchmark; `lidar-cam-calib bench NAME --help` shows its options.\n"
@@ -232,6 +262,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_calibrate(a)
         if a.cmd == "kitti2bag":
             return _cmd_kitti2bag(a)
+        if a.cmd == "lcct2bag":
+            return _cmd_lcct2bag(a)
         return _cmd_simulate(a)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -6,7 +6,8 @@ objects (one per board pose: the ``.xyz`` scan in metres, no intensity, no rings
 camera image), the camera model from the Bouguet calibration (``fc``, ``cc``, ``kc`` = plumb_bob
 k1 k2 p1 p2 k3), the board and the toolbox's own result (``sample_results/Laser_Cam_calib_2.m``:
 ``p_cam = R p_laser + t``, metres) for comparison. :func:`write_lcct_bag` writes the same data
-as an MCAP bag for the real node (``lidar-cam-calib calibrate board``, ``config/board_lcct.yaml``).
+as an MCAP bag for the real node (``lidar-cam-calib lcct2bag``, then ``lidar-cam-calib calibrate board``
+with ``config/board_lcct.yaml``).
 
 * ``cc`` is used as it is: the corners of the calibration (``x_pixels``) are on OpenCV's pixel
   grid already (ours from ``findChessboardCorners`` + ``cornerSubPix`` are within 0.05 px of
@@ -191,22 +192,5 @@ def write_lcct_bag(folder, out_dir, name: str = "lcct_checkerboard_3dlaser", ove
     return bag_path, truth_path
 
 
-def main(argv=None) -> int:
-    """``python -m lidar_cam_calib.io.lcct FOLDER OUT_DIR [--overwrite] [--mono]``: write the bag."""
-    import argparse
-    ap = argparse.ArgumentParser(description=main.__doc__)
-    ap.add_argument("folder", help="the lcct_checkerboard_3dlaser folder")
-    ap.add_argument("out_dir")
-    ap.add_argument("--overwrite", action="store_true")
-    ap.add_argument("--mono", action="store_true", help="mono8 images instead of bgr8")
-    a = ap.parse_args(argv)
-    bag, truth = write_lcct_bag(a.folder, a.out_dir, overwrite=a.overwrite, encoding="mono8" if a.mono else "bgr8")
-    print(f"wrote {bag}\ntruth {truth} (the toolbox's own result, not an independent truth)")
-    return 0
-
-
 __all__ = ["LcctData", "read_lcct", "write_lcct_bag"]
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
