@@ -305,6 +305,11 @@ class StaticDetector:
         self.last_change_m = math.nan     # the statistic and its threshold at the last update
         self.last_threshold_m = math.nan
 
+    @property
+    def since_s(self) -> float | None:
+        """Stamp of the reference scan: the start of the current still period (if it lasts)."""
+        return self._since
+
     def change(self, r: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
         """(median |smoothed range change|, threshold) between two scans; (inf, thr) when
         they share no valid beam."""

@@ -40,6 +40,7 @@ class LrfCalibNode(CalibNodeBase):
         self._camera_info_key = None
         self.latest_pair: tuple[Any, Any] | None = None
         self._stop_frames = 0                     # frames fed to the current stop
+        self._first_pairs: list = []              # pairs since the static detector's reference scan
         self._stop_last: LrfFrame | None = None   # the newest of them (for the overlay)
         self.add_input("scan", LaserScan, "scan_topic", "/scan", "sensor_msgs/LaserScan input.", self._on_scan)
         self.add_input("depth", Image, "depth_topic", "/camera/depth/image_raw",
@@ -70,6 +71,7 @@ class LrfCalibNode(CalibNodeBase):
         self.sync.reset()
         self.latest_pair = None
         self._stop_frames = 0
+        self._first_pairs = []
         self.static = StaticDetector(self.param("static_time_s"), self.param("static_range_tol_m"))
 
     # -- inputs (input callback group, in arrival order) -----------------------
@@ -86,6 +88,13 @@ class LrfCalibNode(CalibNodeBase):
         fired = self.static.update(t, ranges)
         if not self.static.still:
             self._stop_frames = 0   # the AGV moves: the next stop starts afresh
+            since = self.static.since_s
+            self._first_pairs = [p for p in self._first_pairs if self._pair_t0(p) >= since]
+        elif self._first_pairs:
+            # the stop began at the reference scan: the pairs that arrived since then are of it too
+            first, self._first_pairs = self._first_pairs, []
+            for pair in first:
+                self._on_pair(pair)
         for pair in self.sync.push("scan", t, msg):
             self._on_pair(pair)
         if self.param("trigger") in ("auto", "both") and fired:
@@ -104,7 +113,11 @@ class LrfCalibNode(CalibNodeBase):
         """A synchronised scan + depth pair: the latest one, and one more frame
         of the current stop while the scan is static."""
         self.latest_pair = pair
-        if self.camera is None or not self.static.still:
+        if self.camera is None:
+            return
+        if not self.static.still:
+            if self.static.since_s is not None and self._pair_t0(pair) >= self.static.since_s:
+                self._first_pairs = (self._first_pairs + [pair])[-8:]
             return
         if self.fresh_enough(*(stamp_to_s(m.header.stamp) for m in pair)):
             return
@@ -114,6 +127,10 @@ class LrfCalibNode(CalibNodeBase):
         replay = self.pub_ack is not None
         if replay or self._jobs.qsize() < 4:   # live: while a fit runs, extra frames of the stop are skipped
             self.submit(lambda: self._feed(frame, gen), wait=False)
+
+    @staticmethod
+    def _pair_t0(pair: tuple) -> float:
+        return min(stamp_to_s(m.header.stamp) for m in pair)
 
     def _feed(self, frame: LrfFrame, gen: int) -> tuple[bool, str]:
         if gen != self._generation:
@@ -125,6 +142,8 @@ class LrfCalibNode(CalibNodeBase):
 
     def refuse_input(self, stream: str, msg: Any, reason: str) -> None:
         super().refuse_input(stream, msg, reason)
+        if stream in ("scan", "depth"):
+            self._first_pairs = []
         if stream in ("scan", "depth") and self._stop_frames:
             # a capture must not use frames older than a refused input: the stop starts again
             self._stop_frames = 0
