@@ -217,11 +217,14 @@ class IcpResult:
 
 def icp_point_to_plane(src: np.ndarray, dst: np.ndarray, T0: np.ndarray, cfg: AlignConfig | None = None,
                        with_scale: bool = False, dst_tree: cKDTree | None = None,
-                       dst_normals: np.ndarray | None = None) -> IcpResult:
+                       dst_normals: np.ndarray | None = None, dst_weights: np.ndarray | None = None,
+                       fix_rotation: bool = False) -> IcpResult:
     """Point-to-plane ICP of ``src`` onto ``dst`` from ``T0``; trimmed by distance.
 
     With ``with_scale`` the model is ``dst ~ (1 + s) (R src + t)`` about the
-    target origin, the scale returned as ``scale`` (applied after T)."""
+    target origin, the scale returned as ``scale`` (applied after T). ``dst_weights``: per target
+    point weight (e.g. inverse triangulation variance) times the robust weight. ``fix_rotation``:
+    only the translation is estimated (``H`` is then 3x3)."""
     cfg = cfg or AlignConfig()
     tree = dst_tree or cKDTree(dst)
     if dst_normals is None:
@@ -244,8 +247,10 @@ def icp_point_to_plane(src: np.ndarray, dst: np.ndarray, T0: np.ndarray, cfg: Al
         r = np.einsum("ij,ij->i", qq - pp, nn_)
         mad = np.median(np.abs(r)) * 1.4826 + 1e-4
         w = 1.0 / np.maximum(1.0, np.abs(r) / (2.0 * mad))  # Huber-like
-        J = np.concatenate([np.cross(pp, nn_), nn_], axis=1)
-        if with_scale:
+        if dst_weights is not None:
+            w = w * dst_weights[nn[ok]]
+        J = nn_ if fix_rotation else np.concatenate([np.cross(pp, nn_), nn_], axis=1)
+        if with_scale and not fix_rotation:
             J = np.concatenate([J, np.einsum("ij,ij->i", pp, nn_)[:, None]], axis=1)
         Jw = J * w[:, None]
         H = Jw.T @ J
@@ -254,9 +259,11 @@ def icp_point_to_plane(src: np.ndarray, dst: np.ndarray, T0: np.ndarray, cfg: Al
             x = np.linalg.solve(H + 1e-9 * np.eye(H.shape[0]), g)
         except np.linalg.LinAlgError as e:
             raise CalibError("ICP: degenerate geometry (the overlapping clouds constrain no pose)") from e
+        if fix_rotation:
+            x = np.concatenate([np.zeros(3), x])
         dR = so3_exp(x[:3])
         # p' = dR p + dt (in target space), with p = scale (R src + t)
-        ds = 1.0 + (x[6] if with_scale else 0.0)
+        ds = 1.0 + (x[6] if with_scale and not fix_rotation else 0.0)
         R = dR @ R
         t = dR @ t + x[3:6] / (scale * ds)
         scale = scale * ds
@@ -269,8 +276,9 @@ def icp_point_to_plane(src: np.ndarray, dst: np.ndarray, T0: np.ndarray, cfg: Al
     return IcpResult(make_T(R, t), float(scale), rms, ncorr, H, sig)
 
 
-__all__ = ["AlignConfig", "HoughResult", "IcpResult", "compatible_pairs", "estimate_normals",
-           "fit_yaw_translation", "hough_align", "icp_point_to_plane", "rz"]
+__all__ = ["AlignConfig", "HoughResult", "IcpResult", "bev_translation", "compatible_pairs", "estimate_normals",
+           "fit_yaw_translation", "hough_align", "icp_point_to_plane", "icp_translation", "layered_bev_translation",
+           "motion_yaw", "rz", "wahba"]
 
 
 def motion_yaw(m_target: np.ndarray, m_source: np.ndarray) -> float:
@@ -314,3 +322,94 @@ def bev_translation(target: np.ndarray, source: np.ndarray, yaw: float, cell_m: 
     mask[max(0, i - k):i + k + 1, max(0, j - k):j + k + 1] = False
     second = float(sub[mask].max()) if np.any(mask) else 0.0
     return np.array([shifts[i] * cell_m, shifts[j] * cell_m, 0.0]), best / max(second, 1e-9)
+
+
+def layered_bev_translation(target: np.ndarray, source: np.ndarray, yaw: float, cell_m: float = 0.1,
+                            radius_m: float = 6.0, z_range: tuple = (0.3, 5.0), layer_m: float = 0.3,
+                            extent_m: float = 30.0, dilate: int = 1) -> tuple[np.ndarray, float, float]:
+    """Horizontal translation of ``Rz(yaw) source`` onto ``target`` (levelled clouds, ground at z = 0)
+    by FFT cross-correlation of bird's-eye occupancy grids per height layer, summed over the layers
+    (a 3D correlation with no vertical shift: both clouds stand on the same ground). The target grid
+    is dilated by ``dilate`` cells (its points are sparse rings), the source is binary occupancy.
+    Returns (t (3,), the fraction of occupied source cells that hit, peak ratio: best score over the
+    best score farther than 1 m from the peak)."""
+    n = int(np.ceil(2 * extent_m / cell_m))
+    nz = int(np.ceil((z_range[1] - z_range[0]) / layer_m))
+
+    def grids(p, dil):
+        m = (p[:, 2] > z_range[0]) & (p[:, 2] < z_range[1]) & (np.abs(p[:, 0]) < extent_m) & \
+            (np.abs(p[:, 1]) < extent_m)
+        ij = np.floor((p[m, :2] + extent_m) / cell_m).astype(int)
+        kz = np.clip(((p[m, 2] - z_range[0]) / layer_m).astype(int), 0, nz - 1)
+        g = np.zeros((nz, n, n), np.float32)
+        g[kz, ij[:, 0], ij[:, 1]] = 1.0
+        if dil:
+            from scipy import ndimage
+            g = ndimage.grey_dilation(g, size=(1, 2 * dil + 1, 2 * dil + 1))
+        return g
+
+    G_t = grids(target, dilate)
+    G_s = grids(source @ rz(yaw).T, 0)
+    tot = float(G_s.sum())
+    if tot < 20:
+        raise CalibError("translation search: fewer than 20 occupied cells above the ground in the camera cloud")
+    F = np.fft.rfft2(G_t, s=(2 * n, 2 * n)) * np.conj(np.fft.rfft2(G_s, s=(2 * n, 2 * n)))
+    corr = np.fft.irfft2(F.sum(axis=0), s=(2 * n, 2 * n))
+    r = int(np.ceil(radius_m / cell_m))
+    shifts = np.arange(-r, r + 1)
+    sub = corr[np.ix_(shifts % (2 * n), shifts % (2 * n))]
+    i, j = np.unravel_index(int(np.argmax(sub)), sub.shape)
+    best = float(sub[i, j])
+    mask = np.ones_like(sub, bool)
+    k = int(np.ceil(1.0 / cell_m))
+    mask[max(0, i - k):i + k + 1, max(0, j - k):j + k + 1] = False
+    second = float(sub[mask].max()) if np.any(mask) else 0.0
+    return np.array([shifts[i] * cell_m, shifts[j] * cell_m, 0.0]), best / tot, best / max(second, 1e-9)
+
+
+def wahba(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Rotation R minimising sum w_i |a_i - R b_i|^2 over unit vectors (SVD)."""
+    a = a / np.linalg.norm(a, axis=1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    B = (w[:, None, None] * a[:, :, None] * b[:, None, :]).sum(0)
+    U, _, Vt = np.linalg.svd(B)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt))])
+    return U @ D @ Vt
+
+
+def icp_translation(cam: np.ndarray, cam_normals: np.ndarray, lidar_rot: np.ndarray, t0: np.ndarray,
+                    cfg: AlignConfig | None = None, cam_weights: np.ndarray | None = None) -> IcpResult:
+    """Translation-only point-to-plane ICP with the camera cloud as the *source*: ``cam ~ lidar_rot + t``
+    (``lidar_rot``: the LiDAR cloud already rotated into the camera's levelled frame). Each camera point
+    is matched to its nearest LiDAR point and the residual is measured along the camera point's own
+    normal. The camera cloud covers only part of each surface: with it as the target, LiDAR points past
+    the edge of a camera patch pull towards the edge and bias the translation along the street by
+    5-10 cm; with it as the source every residual has a real counterpart. ``H`` is 3x3."""
+    cfg = cfg or AlignConfig()
+    tree = cKDTree(lidar_rot)
+    t = np.asarray(t0, float).copy()
+    dmax = cfg.icp_max_dist_m
+    wext = np.ones(cam.shape[0]) if cam_weights is None else cam_weights
+    H, rms, sig, ncorr = np.eye(3), np.inf, np.inf, 0
+    for it in range(cfg.icp_iterations):
+        dist, nn = tree.query(cam - t, k=1, distance_upper_bound=dmax)
+        ok = np.isfinite(dist)
+        ncorr = int(ok.sum())
+        if ncorr < 10:
+            raise CalibError(f"ICP: only {ncorr} correspondences within {dmax:.2f} m; the clouds do not overlap "
+                             "after the coarse alignment")
+        n = cam_normals[ok]
+        r = np.einsum("ij,ij->i", lidar_rot[nn[ok]] + t - cam[ok], n)
+        mad = np.median(np.abs(r)) * 1.4826 + 1e-4
+        w = wext[ok] / np.maximum(1.0, np.abs(r) / (2.0 * mad))
+        H = (n * w[:, None]).T @ n
+        g = (n * w[:, None]).T @ r
+        dt = -np.linalg.solve(H + 1e-9 * np.eye(3), g)
+        t = t + dt
+        rms = float(np.sqrt(np.mean(r ** 2)))
+        sig = float(mad)
+        if np.linalg.norm(dt) < 1e-5 and dmax <= cfg.icp_min_dist_m:
+            break
+        if it % 5 == 4:
+            dmax = max(cfg.icp_min_dist_m, dmax * 0.5)
+    return IcpResult(make_T(np.eye(3), t), 1.0, rms, ncorr, H, sig)

@@ -23,9 +23,22 @@ Paper 001 (Nagy & Benedek 2020) as implemented here, per calibration window:
 
 Solvers (``solver``): ``oba`` (object alignment only), ``oba_icp``, ``paper``
 (+ PnP from object centroids, voxel-majority shapes, z extent in the
-compatibility test), ``ours`` (object-level shapes, verified Hough cells,
-scale estimated in the ICP, PnP on every registered LiDAR point in view).
-The curve-based non-rigid refinement is not implemented (see the README).
+compatibility test), ``ours``:
+
+* its own SfM (``ours_sfm``): SIFT over all frame pairs, the widest initial
+  pair, ratio 0.7, sub-pixel KLT corner tracks added, and a Schur-complement
+  Levenberg-Marquardt bundle adjustment (scipy's LSMR trust region stalls in
+  the bas-relief valley of forward motion: 0.2-0.4 deg pose errors, hence
+  metre-level depth errors at 15 m; the exact step reaches 0.03-0.1 deg);
+* rotation without a guess from Wahba's problem on the two ground normals and
+  the camera trajectory against the LiDAR odometry (lever arm iterated);
+* translation by a layered bird's-eye cross-correlation (then a
+  translation-only point-to-plane ICP with the precise near camera points as
+  the source, moving LiDAR points left out);
+* a second gate on the above-ground partial Hausdorff distance, the
+  covariance from the Wahba weights and the ICP information plus an
+  along-the-street and an isotropic term; PnP on every registered point.
+The curve-based non-rigid refinement (:mod:`.curve`) is not wired in here.
 
 Clock: the camera stamp minus ``time_offset_s`` is the exposure on the LiDAR
 clock. Under constant velocity an unknown offset is indistinguishable from a
@@ -46,8 +59,9 @@ from ..core.calibrator import Verdict, cfg_field
 from ..core.errors import CalibError, NotReadyError
 from ..core.geometry import inv_T, make_T, skew, so3_exp, so3_log, transform_points
 from ..core.result import CalibrationResult
-from .align import (AlignConfig, HoughResult, bev_translation, estimate_normals, hough_align,
-                    icp_point_to_plane, motion_yaw, rz)
+from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
+                    layered_bev_translation, wahba,
+                    icp_point_to_plane)
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, point_motion,
                       voxel_down)
 from .frame import CameraFrame, LidarSweep
@@ -76,6 +90,11 @@ class TargetlessConfig:
                                                range=(0.1, 50.0))
     max_hausdorff_m: float = cfg_field(0.05, "gate: partial Hausdorff distance of the registered clouds "
                                              "(paper: 5 cm)", range=(0.005, 5.0))
+    ours_max_hausdorff_above_ground_m: float = cfg_field(
+        0.12, "ours, second gate: the same distance over the registered LiDAR points above the ground only "
+              "(the ground alone matches whatever slides along a street)", range=(0.005, 5.0))
+    ours_min_bev_peak_ratio: float = cfg_field(1.15, "ours, gate: the bird's-eye translation peak over the best "
+                                                     "score farther than 1 m from it", range=(1.0, 100.0))
     hausdorff_quantile: float = cfg_field(0.5, "quantile of LiDAR-to-camera-cloud point-to-surface distances "
                                                "used as the partial Hausdorff distance", range=(0.1, 1.0))
     dynamic_dist_m: float = cfg_field(0.3, "an object whose points moved more than this between compensated "
@@ -93,8 +112,28 @@ class TargetlessConfig:
     deskew: bool = cfg_field(True, "de-skew the reference sweep with the odometry velocity")
     max_point_sigma_m: float = cfg_field(0.15, "camera-cloud points with a larger predicted triangulation "
                                               "error are dropped", range=(0.005, 10.0))
+    ours_max_point_sigma_m: float = cfg_field(0.05, "ours: the same limit for the translation ICP (the "
+                                                    "predicted sigma is optimistic beyond ~10 m: keep only "
+                                                    "the best points there)",
+                                              range=(0.005, 10.0))
+    ours_centre_sigma_m: float = cfg_field(0.01, "ours: 1-sigma of the SfM camera centres (Wahba weights)",
+                                           range=(1e-4, 1.0))
+    ours_along_motion_sigma_m: float = cfg_field(0.1, "ours: 1-sigma of the translation along the driving "
+                                                       "direction from the camera cloud's depth bias (measured "
+                                                       "on the simulated family at 644 px width)",
+                                                 range=(0.0, 5.0))
+    ours_icp_range_m: float = cfg_field(15.0, "ours: camera-cloud points farther than this from the first camera "
+                                              "are left out of the translation ICP", range=(2.0, 100.0))
+    ours_translation_floor_m: float = cfg_field(0.05, "ours: isotropic 1-sigma added to the translation (the "
+                                                      "ICP information is over-confident across the street)",
+                                                range=(0.0, 5.0))
+    ours_ground_sigma_deg: float = cfg_field(0.1, "ours: 1-sigma of a ground normal (Wahba weight)",
+                                             range=(0.001, 10.0))
     motion_yaw_window_deg: float = cfg_field(3.0, "ours: Hough yaws within this of the yaw from the travel "
                                                   "directions", range=(0.25, 180.0))
+    coarse_radius_m: float = cfg_field(6.0, "ours: horizontal translation search radius between the levelled "
+                                            "clouds (lever arm plus the motion between sweep and image)",
+                                       range=(0.5, 30.0))
     dense_refs: int = cfg_field(4, "frames the densification starts flow tracks from", range=(1, 30))
     covariance_inflation: float = cfg_field(3.0, "factor on the ICP covariance for correlated residuals",
                                             range=(1.0, 1000.0))
@@ -102,6 +141,8 @@ class TargetlessConfig:
     objects: ObjectConfig = dataclasses.field(default_factory=lambda: ObjectConfig(radius_m=30.0))
     align: AlignConfig = dataclasses.field(default_factory=AlignConfig)
     sfm: SfmConfig = dataclasses.field(default_factory=SfmConfig)
+    ours_sfm: SfmConfig = dataclasses.field(default_factory=lambda: SfmConfig(
+        match_window=7, init_parallax_cap_px=1000.0, ratio=0.7, klt_tracks=1500, ba_solver="schur"))
 
 
 @dataclasses.dataclass
@@ -265,14 +306,19 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     ims = [f.image for f in images]
     masks = [f.mask for f in images] if any(f.mask is not None for f in images) else None
     # -- SfM
-    if "sfm" not in cache:
-        sfm0 = run_sfm(ims, cam, masks, ref=0, cfg=cfg.sfm)
+    # ours: SIFT on every frame pair, widest initial pair, stricter ratio test, plus sub-pixel KLT tracks
+    # (forward motion leaves the translation direction weakly determined: the bas-relief ambiguity; more
+    # and longer precise tracks narrow it)
+    sfm_cfg = cfg.ours_sfm if ours else cfg.sfm
+    key = "sfm_ours" if ours else "sfm"
+    if key not in cache:
+        sfm0 = run_sfm(ims, cam, masks, ref=0, cfg=sfm_cfg)
         step = max(1, len(ims) // cfg.dense_refs)
         refs = list(range(0, len(ims), step))[:cfg.dense_refs]
-        dense0 = densify(ims, cam, sfm0, masks, cfg.sfm, refs=refs)[0] \
+        dense0 = densify(ims, cam, sfm0, masks, sfm_cfg, refs=refs)[0] \
             if sfm0.reprojection_px <= cfg.max_sfm_reprojection_px else None
-        cache["sfm"] = (sfm0, dense0)
-    sfm, dense = cache["sfm"]
+        cache[key] = (sfm0, dense0)
+    sfm, dense = cache[key]
     if sfm.reprojection_px > cfg.max_sfm_reprojection_px:
         raise CalibError(f"gate failed: SfM re-projection error {sfm.reprojection_px:.2f} px > "
                          f"{cfg.max_sfm_reprojection_px:.2f} px; calibration rejected (try another stretch)")
@@ -316,10 +362,13 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     # tiny parallax and metre-level depth errors); sigma from the SfM's own re-projection error
     cloud_all = np.concatenate([dense, sfm.points])
     sig = depth_sigma(cloud_all, sfm.centres(), float(cam.K[0, 0]), max(sfm.reprojection_px, 0.2))
-    cloud_s = cloud_all[sig <= cfg.max_point_sigma_m]
+    max_sig = cfg.max_point_sigma_m
+    keep_s = sig <= max_sig
+    cloud_s = cloud_all[keep_s]
+    sig_s = sig[keep_s]
     if cloud_s.shape[0] < 500:
         raise CalibError(f"only {cloud_s.shape[0]} camera-cloud points are triangulated to better than "
-                         f"{cfg.max_point_sigma_m * 100:.0f} cm: the camera barely moved sideways to the scene "
+                         f"{max_sig * 100:.0f} cm: the camera barely moved sideways to the scene "
                          "(drive past objects, not towards them)")
     metrics_pre = {"camera_cloud_points": int(cloud_s.shape[0])}
     # -- level both clouds
@@ -344,42 +393,84 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                "sfm_points": int(sfm.points.shape[0]), "dense_points": int(dense.shape[0]),
                "scale_m_per_unit": sfm.unit_m, "scale_rel_sigma": scale_rel, "objects_camera": len(A),
                "objects_lidar": len(B), "objects_dynamic_removed": n_dyn, "speed_mps": speed, **metrics_pre}
+    near = np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m + 10.0
+    static_pts = np.ones(cl.shape[0], bool)
+    if ours and others:
+        # ours: every point that moved between the compensated sweeps leaves the ICP too (not only whole
+        # objects): the camera saw the moving cars elsewhere
+        static_pts = point_motion(ref_sweep.points, others, T_others) <= cfg.dynamic_dist_m
+        near &= static_pts
+    src = voxel_down(cl[near], 0.1)
+    tree = cKDTree(cs)
+    nrm, _ = estimate_normals(cs, tree)
+    icp = None
     if ours:
-        # rotation from the ground normals and the direction of travel seen by both sensors (no guess);
-        # translation by bird's-eye occupancy cross-correlation
+        # rotation (no guess): Wahba's problem on the two ground normals and the camera trajectory.
+        # Camera centre k in the camera-0 frame: c_k = R (q_k + (A_k - I) o), with (A_k, q_k) the LiDAR
+        # motion from exposure 0 to k (odometry), o the camera centre in the LiDAR frame (lever arm,
+        # from the translation found below; two rounds)
         c = sfm.centres()
-        m_c = Ls[:3, :3] @ (c[-1] - c[0])
-        p_rel = np.array([(inv_T(poses[jr]) @ P)[:3, 3] for P in P_img])
-        m_l = Ll[:3, :3] @ (p_rel[-1] - p_rel[0])
-        yaw0 = motion_yaw(m_c, m_l)
-        metrics["motion_yaw_deg"] = math.degrees(yaw0)
-        try:
-            # the paper's Hough vote, restricted to yaws near the motion-derived one
-            h = hough_align(A, B, dataclasses.replace(acfg, yaw_window_deg=cfg.motion_yaw_window_deg),
-                            yaw_center_rad=yaw0)
-            T_oba_lev = h.T
-            metrics.update({"objects_matched": h.n_matches, "hough_votes": h.votes})
-        except CalibError as e:
-            t_bev, ratio = bev_translation(cs[~A.ground], cl[~B.ground], yaw0, radius_m=cfg.align.search_radius_m)
-            T_oba_lev = make_T(rz(yaw0), t_bev)
-            metrics.update({"bev_peak_ratio": ratio, "hough_refused": str(e)})
+        Q = [inv_T(P_img[0]) @ P for P in P_img]
+        n_cam, n_lid = Ls[2, :3], Ll[2, :3]
+        T_S_L0 = T_sweep_img  # LiDAR at the sweep stamp <- LiDAR at exposure 0
+        o = np.zeros(3)
+        sig_c = max(cfg.ours_centre_sigma_m, 1e-4)
+        t_lev = None
+        # only the camera points close to the camera: their depth bias is smallest
+        near_c = (np.linalg.norm(cloud_s - c[0], axis=1) <= cfg.ours_icp_range_m) & \
+            (sig_s <= cfg.ours_max_point_sigma_m)
+        if near_c.sum() < 2000:  # too few precise points: use the whole camera cloud
+            near_c = np.ones(cloud_s.shape[0], bool)
+        for _ in range(3):
+            v = np.array([Qk[:3, 3] + (Qk[:3, :3] - np.eye(3)) @ o for Qk in Q[1:]])
+            a = np.concatenate([n_cam[None], c[1:]])
+            b = np.concatenate([n_lid[None], v])
+            lv = np.linalg.norm(v, axis=1)
+            w = np.concatenate([[1.0 / math.radians(cfg.ours_ground_sigma_deg) ** 2], (lv / sig_c) ** 2])
+            R_cl = wahba(a, b, w)
+            # levelled: cam_lev = R_lev lid_lev + t_lev
+            R_lev = Ls[:3, :3] @ R_cl @ inv_T(T_S_L0)[:3, :3] @ Ll[:3, :3].T
+            if t_lev is None:
+                # translation: layered bird's-eye cross-correlation of everything above the ground
+                # (R_lev lid ~ cam + t'  <=>  t_lev = -t')
+                t_bev, hit, ratio = layered_bev_translation((cl[~B.ground]) @ R_lev.T, cs[~A.ground], 0.0,
+                                                            radius_m=cfg.coarse_radius_m)
+                t_lev = -t_bev
+                metrics.update({"bev_peak_ratio": ratio, "bev_hit_fraction": hit})
+                T_oba_lev = make_T(R_lev, t_lev)
+            # translation-only point-to-plane ICP, camera cloud as the source (the rotation is better
+            # determined by the ground and the trajectory than by ICP on a street, which is nearly
+            # degenerate along its axis)
+            icp = icp_translation(cs[near_c], nrm[near_c], src @ R_lev.T, t_lev, acfg)
+            t_lev = icp.T[:3, 3]
+            T_c0_L0 = inv_T(Ls) @ make_T(R_lev, t_lev) @ Ll @ T_S_L0
+            o = -T_c0_L0[:3, :3].T @ T_c0_L0[:3, 3]
+        metrics["motion_yaw_deg"] = math.degrees(math.atan2(R_lev[1, 0], R_lev[0, 0]))
+        # the ICP may slide along a street with few cross-street surfaces: keep the bird's-eye translation
+        # when its above-ground fit is better
+        lid_in = cl[np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m]
+        lid_in = lid_in[lid_in[:, 2] > 0.3]
+
+        def above_fit(Tl):
+            q = transform_points(Tl, lid_in)
+            d, nn = tree.query(q, k=1, distance_upper_bound=0.5)
+            okq = np.isfinite(d)
+            if okq.sum() < 20:
+                return np.inf
+            return float(np.median(np.abs(np.einsum("ij,ij->i", q[okq] - cs[nn[okq]], nrm[nn[okq]]))))
+        T_icp_lev, T_bev_lev = make_T(R_lev, t_lev), make_T(R_lev, T_oba_lev[:3, 3])
+        f_icp, f_bev = above_fit(T_icp_lev), above_fit(T_bev_lev)
+        metrics.update({"above_fit_icp_m": f_icp, "above_fit_bev_m": f_bev})
+        icp = dataclasses.replace(icp, T=T_icp_lev if f_icp <= f_bev else T_bev_lev)
     else:
         h: HoughResult = hough_align(A, B, acfg)
         T_oba_lev = h.T
         metrics.update({"objects_matched": h.n_matches, "hough_votes": h.votes})
     diag.T_oba = inv_T(Ls) @ T_oba_lev @ Ll @ T_sweep_img
     # -- ICP
-    near = np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m + 10.0
-    src = voxel_down(cl[near], 0.1)
-    tree = cKDTree(cs)
-    nrm, _ = estimate_normals(cs, tree)
-    T_lev = T_oba_lev
-    icp = None
-    if solver != "oba":
-        icp = icp_point_to_plane(src, cs, T_oba_lev, acfg, with_scale=ours, dst_tree=tree, dst_normals=nrm)
-        if ours and abs(icp.scale - 1.0) > 5 * max(scale_rel, 0.01):
-            # the scale wandered off (degenerate overlap): keep the odometry scale
-            icp = icp_point_to_plane(src, cs, T_oba_lev, acfg, with_scale=False, dst_tree=tree, dst_normals=nrm)
+    T_lev = icp.T if icp is not None else T_oba_lev
+    if solver != "oba" and not ours:
+        icp = icp_point_to_plane(src, cs, T_oba_lev, acfg, dst_tree=tree, dst_normals=nrm)
         T_lev = icp.T
     scale_icp = icp.scale if icp is not None else 1.0
     T_chain = inv_T(Ls) @ T_lev @ Ll
@@ -403,6 +494,10 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                          "registration; calibration rejected")
     dist_pl = np.abs(np.einsum("ij,ij->i", regl[ok] - cs[nn[ok]], nrm[nn[ok]]))
     haus = float(np.quantile(dist_pl, cfg.hausdorff_quantile))
+    above = regl[ok][:, 2] > 0.3
+    metrics["hausdorff_above_ground_m"] = float(np.quantile(dist_pl[above], cfg.hausdorff_quantile)) \
+        if above.sum() >= 20 else float("nan")
+    metrics["overlap_above_ground_points"] = int(above.sum())
     metrics["hausdorff_m"] = haus
     metrics["overlap_points"] = int(ok.sum())
     # -- final PnP (the paper: object centroids through the chain; ours: every overlapping point)
@@ -437,10 +532,18 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     # inflated for correlated residuals, plus the scale and the clock priors
     cov = np.zeros((6, 6))
     if icp is not None:
-        Hs = icp.H[:6, :6] if icp.H.shape[0] >= 6 else np.eye(6)
         sig2 = icp.residual_sigma_m ** 2
         try:
-            C_lev = np.linalg.inv(Hs) * sig2 * cfg.covariance_inflation
+            if ours:
+                # rotation from Wahba (ground normals: tilt; trajectory chord: yaw), translation from the
+                # translation-only ICP information
+                C_lev = np.zeros((6, 6))
+                chord = max(float(np.linalg.norm(sfm.centres()[-1] - sfm.centres()[0])), 0.1)
+                s_tilt = math.radians(cfg.ours_ground_sigma_deg)
+                C_lev[:3, :3] = np.diag([s_tilt ** 2, s_tilt ** 2, (cfg.ours_centre_sigma_m / chord) ** 2])
+                C_lev[3:, 3:] = np.linalg.inv(icp.H[:3, :3]) * sig2 * cfg.covariance_inflation
+            else:
+                C_lev = np.linalg.inv(icp.H[:6, :6]) * sig2 * cfg.covariance_inflation
         except np.linalg.LinAlgError:
             C_lev = np.eye(6)
         Rs, ts = Ls[:3, :3], Ls[:3, 3]
@@ -458,12 +561,26 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     # clock: translation along the driving direction (LiDAR x motion mapped into the camera)
     vdir = T_final[:3, :3] @ (link.T[:3, 3] / max(np.linalg.norm(link.T[:3, 3]), 1e-9))
     cov[3:, 3:] += np.outer(vdir, vdir) * (speed * cfg.time_offset_sigma_s) ** 2
+    if ours:
+        # the camera cloud's depth ahead (what fixes the translation along a street) carries a bias
+        # correlated through the SfM poses that the ICP information does not see
+        cov[3:, 3:] += np.outer(vdir, vdir) * cfg.ours_along_motion_sigma_m ** 2 \
+            + np.eye(3) * cfg.ours_translation_floor_m ** 2
     metrics["icp_rms_m"] = float(icp.rms_m) if icp is not None else float("nan")
     metrics["icp_scale"] = float(scale_icp)
     diag.metrics = metrics
     if haus > cfg.max_hausdorff_m and solver != "oba":
         raise CalibError(f"gate failed: Hausdorff distance {haus * 100:.1f} cm between the registered clouds > "
                          f"{cfg.max_hausdorff_m * 100:.1f} cm; calibration rejected")
+    ha = metrics["hausdorff_above_ground_m"]
+    if ours and metrics.get("bev_peak_ratio", np.inf) < cfg.ours_min_bev_peak_ratio:
+        raise CalibError(f"gate failed: the translation search has no distinct peak (best / best elsewhere "
+                         f"{metrics['bev_peak_ratio']:.2f} < {cfg.ours_min_bev_peak_ratio:.2f}): the street looks "
+                         "the same along its axis; calibration rejected (drive past poles, trunks, signs)")
+    if ours and not (ha <= cfg.ours_max_hausdorff_above_ground_m):
+        raise CalibError(f"gate failed: Hausdorff distance above the ground {ha * 100:.1f} cm > "
+                         f"{cfg.ours_max_hausdorff_above_ground_m * 100:.1f} cm (the poles, trunks and facades "
+                         "do not meet; the registration slid along the street); calibration rejected")
     diag.metrics = metrics
     return T_final, cov, metrics
 

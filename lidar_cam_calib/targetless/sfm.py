@@ -61,6 +61,15 @@ class SfmConfig:
                                   range=(0.5, 50.0))
     min_track_angle_deg: float = cfg_field(0.5, "a sparse point needs this triangulation angle",
                                            range=(0.0, 30.0))
+    init_parallax_cap_px: float = cfg_field(40.0, "initial pair score: inliers x min(median parallax, this)",
+                                            range=(1.0, 10000.0))
+    ba_solver: str = cfg_field("scipy", "bundle adjustment: 'schur' (exact LM normal equations, points "
+                                        "eliminated) or 'scipy' (least_squares trf with LSMR steps)",
+                                choices=("schur", "scipy"))
+    klt_tracks: int = cfg_field(0, "ours: corners per frame tracked by pyramidal KLT through the consecutive "
+                                   "frames (sub-pixel, long tracks) and added to the SIFT tracks; 0: SIFT only "
+                                   "(the paper)", range=(0, 20000))
+    klt_fb_px: float = cfg_field(0.3, "KLT forward-backward consistency limit", range=(0.01, 10.0))
     pnp_points: int = cfg_field(45, "3D-2D pairs of the reference frame for EPnP T1 (paper: 45)",
                                 range=(6, 10000))
     dense_step_px: int = cfg_field(3, "densification grid step", range=(1, 64))
@@ -215,6 +224,100 @@ def _ba(K, poses, points, cam_idx, pt_idx, uv, fixed: int, max_nfev: int = 40):
     return out, X, np.linalg.norm(r, axis=1)
 
 
+def _ba_schur(K, poses, points, cam_idx, pt_idx, uv, fixed: int, max_iter: int = 40, huber_px: float = 1.0):
+    """Bundle adjustment by Levenberg-Marquardt on the exact normal equations, the points eliminated
+    by the Schur complement (a camera system of 6 x n_cams unknowns). Forward motion makes the
+    rotation-translation coupling (bas-relief) a long flat valley that an inexact (LSMR) trust-region
+    step crawls along; the exact reduced system walks it in a few steps. Huber weights by IRLS;
+    camera ``fixed`` is held. Same returns as :func:`_ba`."""
+    n_cam, n_pt = len(poses), points.shape[0]
+    R = np.array([T[:3, :3] for T in poses])
+    t = np.array([T[:3, 3] for T in poses])
+    X = points.copy()
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    free = np.array([c != fixed for c in range(n_cam)])
+    fidx = np.full(n_cam, -1)
+    fidx[free] = np.arange(int(free.sum()))
+    nf = int(free.sum())
+
+    def residuals(R, t, X):
+        Xc = np.einsum("nij,nj->ni", R[cam_idx], X[pt_idx]) + t[cam_idx]
+        z = np.where(np.abs(Xc[:, 2]) < 1e-6, 1e-6, Xc[:, 2])
+        pr = np.stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy], 1)
+        return pr - uv, Xc, z
+
+    def robust_cost(r):
+        e = np.linalg.norm(r, axis=1)
+        return float(np.sum(np.where(e <= huber_px, 0.5 * e ** 2, huber_px * (e - 0.5 * huber_px))))
+
+    r, Xc, z = residuals(R, t, X)
+    cost = robust_cost(r)
+    lam = 1e-3
+    for _ in range(max_iter):
+        e = np.linalg.norm(r, axis=1)
+        w = np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12))
+        Jp = np.zeros((uv.shape[0], 2, 3))
+        Jp[:, 0, 0] = fx / z
+        Jp[:, 0, 2] = -fx * Xc[:, 0] / z ** 2
+        Jp[:, 1, 1] = fy / z
+        Jp[:, 1, 2] = -fy * Xc[:, 1] / z ** 2
+        Sx = np.zeros((uv.shape[0], 3, 3))
+        Sx[:, 0, 1], Sx[:, 0, 2], Sx[:, 1, 2] = Xc[:, 2], -Xc[:, 1], Xc[:, 0]
+        Sx[:, 1, 0], Sx[:, 2, 0], Sx[:, 2, 1] = -Xc[:, 2], Xc[:, 1], -Xc[:, 0]   # -[Xc]x
+        Jc = np.concatenate([Jp @ Sx, Jp], axis=2)                 # (m,2,6)
+        Jx = Jp @ R[cam_idx]                                       # (m,2,3)
+        U = np.einsum("mki,mkj,m->mij", Jc, Jc, w)
+        Wm = np.einsum("mki,mkj,m->mij", Jc, Jx, w)   # (m,6,3)
+        Vm = np.einsum("mki,mkj,m->mij", Jx, Jx, w)
+        gc = -np.einsum("mki,mk,m->mi", Jc, r, w)
+        gx = -np.einsum("mki,mk,m->mi", Jx, r, w)
+        V = np.zeros((n_pt, 3, 3))
+        np.add.at(V, pt_idx, Vm)
+        Gx = np.zeros((n_pt, 3))
+        np.add.at(Gx, pt_idx, gx)
+        Uc = np.zeros((n_cam, 6, 6))
+        np.add.at(Uc, cam_idx, U)
+        Gc = np.zeros((n_cam, 6))
+        np.add.at(Gc, cam_idx, gc)
+        Wp = np.zeros((n_pt, n_cam, 6, 3))
+        Wp[pt_idx, cam_idx] = Wm
+        improved, rel = False, 0.0
+        for _try in range(8):
+            Vd = V + lam * np.einsum("nii->ni", V)[:, :, None] * np.eye(3)[None] + 1e-9 * np.eye(3)[None]
+            Vinv = np.linalg.inv(Vd)
+            Y = np.einsum("pcij,pjk->pcik", Wp, Vinv)                # (p,c,6,3)
+            Sblk = -np.einsum("paij,pbkj->abik", Y, Wp)              # (c,c,6,6)
+            Ud = Uc + lam * np.einsum("nii->ni", Uc)[:, :, None] * np.eye(6)[None] + 1e-9 * np.eye(6)[None]
+            for c in range(n_cam):
+                Sblk[c, c] += Ud[c]
+            rhs = Gc - np.einsum("pcij,pj->ci", Y, Gx)
+            S = Sblk[free][:, free].transpose(0, 2, 1, 3).reshape(6 * nf, 6 * nf)
+            try:
+                dc_f = np.linalg.solve(S, rhs[free].ravel()).reshape(nf, 6)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            dc = np.zeros((n_cam, 6))
+            dc[free] = dc_f
+            dx = np.einsum("pij,pj->pi", Vinv, Gx - np.einsum("pcji,cj->pi", Wp, dc))
+            Rn = np.array([so3_exp(dc[c, :3]) @ R[c] for c in range(n_cam)])
+            tn = np.array([so3_exp(dc[c, :3]) @ t[c] + dc[c, 3:] for c in range(n_cam)])
+            Xn = X + dx
+            rn, Xcn, zn = residuals(Rn, tn, Xn)
+            cn = robust_cost(rn)
+            if np.isfinite(cn) and cn < cost:
+                rel = (cost - cn) / max(cost, 1e-12)
+                R, t, X, r, Xc, z, cost = Rn, tn, Xn, rn, Xcn, zn, cn
+                lam = max(lam / 5, 1e-7)
+                improved = True
+                break
+            lam *= 10
+        if not improved or rel < 1e-7:
+            break
+    out = [make_T(R[c], t[c]) if c != fixed else poses[c].copy() for c in range(n_cam)]
+    return out, X, np.linalg.norm(r, axis=1)
+
+
 def run_sfm(images: list, camera: CameraModel, masks: list | None = None, ref: int = 0,
             cfg: SfmConfig | None = None) -> SfmResult:
     """Sparse SfM of ``images`` (list of HxW[x3] uint8); ``masks``: optional list
@@ -226,9 +329,10 @@ def run_sfm(images: list, camera: CameraModel, masks: list | None = None, ref: i
         raise CalibError(f"SfM needs at least 3 frames, got {n}")
     K = camera.K.copy()
     sift = cv2.SIFT_create(nfeatures=cfg.n_features)
-    kps, descs = [], []
+    kps, descs, grays = [], [], []
     for i, im in enumerate(images):
         g = _gray(ideal_image(im, camera))
+        grays.append(g)
         m = None
         if masks is not None and masks[i] is not None:
             m = (~np.asarray(masks[i], bool)).astype(np.uint8) * 255
@@ -296,12 +400,14 @@ def run_sfm(images: list, camera: CameraModel, masks: list | None = None, ref: i
         o = np.full((n, 2), np.nan)
         o[fr] = np.array([kps[f][nd - offs[f]] for f, nd in zip(fr, gnodes)])
         obs_list.append(o)
+    if cfg.klt_tracks > 0:
+        obs_list.extend(klt_tracks(grays, masks, cfg))
     if len(obs_list) < 50:
         raise CalibError(f"SfM: only {len(obs_list)} feature tracks; need at least 50")
     obs = np.array(obs_list)  # (n_tracks, n_frames, 2), NaN = not seen
     seen = np.isfinite(obs[:, :, 0])
     # initial pair: most inliers x parallax (capped)
-    best = max(pair_inl.items(), key=lambda kv: kv[1][0].size * min(kv[1][3], 40.0))
+    best = max(pair_inl.items(), key=lambda kv: kv[1][0].size * min(kv[1][3], cfg.init_parallax_cap_px))
     (i0, j0), (qi, tj, E, par) = best
     if par < 2.0:
         raise CalibError(f"SfM: the camera barely moved (median parallax {par:.1f} px between the best "
@@ -341,8 +447,12 @@ def run_sfm(images: list, camera: CameraModel, masks: list | None = None, ref: i
         live = np.unique(pi)
         pmap = np.full(n_tr, -1)
         pmap[live] = np.arange(live.size)
-        new_p, newX, res = _ba(K, [poses[k] for k in reg], X[live], remap[ci],
-                               pmap[pi], uvs, fixed=int(remap[i0]), max_nfev=max_nfev)
+        if cfg.ba_solver == "schur":
+            new_p, newX, res = _ba_schur(K, [poses[k] for k in reg], X[live], remap[ci],
+                                         pmap[pi], uvs, fixed=int(remap[i0]), max_iter=max_nfev)
+        else:
+            new_p, newX, res = _ba(K, [poses[k] for k in reg], X[live], remap[ci],
+                                   pmap[pi], uvs, fixed=int(remap[i0]), max_nfev=max_nfev)
         for k, T in zip(reg, new_p):
             poses[k] = T
         X[live] = newX
@@ -398,6 +508,58 @@ def run_sfm(images: list, camera: CameraModel, masks: list | None = None, ref: i
     pr, _ = _project(K, T1, p3)
     t1_err = float(np.mean(np.linalg.norm(pr - p2, axis=1)))
     return SfmResult(np.array(poses), Xw, trk, float(np.mean(res)), ref, T1, t1_err, int(res.size))
+
+
+def klt_tracks(grays: list, masks: list | None, cfg: SfmConfig) -> list:
+    """Corner tracks (list of (n_frames, 2) arrays, NaN where not seen): corners
+    detected in every frame away from live tracks, followed frame to frame by
+    pyramidal Lucas-Kanade with a forward-backward check of ``klt_fb_px``."""
+    import cv2
+    n = len(grays)
+    H, W = grays[0].shape
+    out = []
+    live = []  # (track array, current point)
+    lk = {"winSize": (15, 15), "maxLevel": 3,
+          "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
+    for k in range(n):
+        if k > 0 and live:
+            p0 = np.array([c for _, c in live], np.float32).reshape(-1, 1, 2)
+            p1, st, _ = cv2.calcOpticalFlowPyrLK(grays[k - 1], grays[k], p0, None, **lk)
+            pb, st2, _ = cv2.calcOpticalFlowPyrLK(grays[k], grays[k - 1], p1, None, **lk)
+            fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
+            p1 = p1.reshape(-1, 2)
+            ok = (st.ravel() == 1) & (st2.ravel() == 1) & (fb < cfg.klt_fb_px) & \
+                (p1[:, 0] >= 0) & (p1[:, 0] < W - 1) & (p1[:, 1] >= 0) & (p1[:, 1] < H - 1)
+            if masks is not None and masks[k] is not None:
+                mk = np.asarray(masks[k], bool)
+                ok[ok] &= ~mk[p1[ok, 1].astype(int), p1[ok, 0].astype(int)]
+            nl = []
+            for (tr, _), good, q in zip(live, ok, p1):
+                if good:
+                    tr[k] = q
+                    nl.append((tr, q.astype(np.float64)))
+                else:
+                    out.append(tr)
+            live = nl
+        if k == n - 1:
+            break
+        m = np.full((H, W), 255, np.uint8)
+        if masks is not None and masks[k] is not None:
+            m[np.asarray(masks[k], bool)] = 0
+        for _, c in live:
+            cv2.circle(m, (int(c[0]), int(c[1])), 6, 0, -1)
+        want = cfg.klt_tracks - len(live)
+        if want > 20:
+            pts = cv2.goodFeaturesToTrack(grays[k], want, 0.005, 6, mask=m, blockSize=5)
+            if pts is not None:
+                pts = cv2.cornerSubPix(grays[k], pts.astype(np.float32), (3, 3), (-1, -1),
+                                       (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
+                for q in pts.reshape(-1, 2):
+                    tr = np.full((n, 2), np.nan)
+                    tr[k] = q
+                    live.append((tr, q.astype(np.float64)))
+    out.extend(tr for tr, _ in live)
+    return [t for t in out if np.isfinite(t[:, 0]).sum() >= 3]
 
 
 def _spread(uv: np.ndarray, m: int) -> np.ndarray:
@@ -531,4 +693,4 @@ def _densify_from(images, camera, res, masks, cfg, ref, gi, fwd, bwd):
     return Xd[good], col
 
 
-__all__ = ["SfmConfig", "SfmResult", "apply_scale", "densify", "depth_sigma", "ideal_image", "run_sfm"]
+__all__ = ["SfmConfig", "SfmResult", "apply_scale", "densify", "depth_sigma", "ideal_image", "klt_tracks", "run_sfm"]
