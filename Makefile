@@ -3,6 +3,7 @@
 #               the lrf node, print the extrinsic and its error vs truth,
 #               write out/lrf_demo_result.yaml and out/lrf_demo_overlay.png
 #   make demo-board  the same for the board method (two cameras at once)
+#   make demo-targetless  the same for the target-less method (a simulated drive)
 #   make test   the same set-up, then the linter and the whole test suite (what CI runs)
 PYTHON ?= python3
 VENV   ?= .venv
@@ -12,7 +13,7 @@ TF2    := $(VENV)/tf2_msgs
 SHELL  := /bin/bash
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: demo demo-board test lint bench bench-decode clean-venv
+.PHONY: demo demo-board demo-targetless test lint bench bench-decode clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Python >= 3.11 needed")'
@@ -39,6 +40,11 @@ demo-board: $(STAMP)
 	$(BIN)/lidar-cam-calib calibrate board bags/board_demo --params config/board_demo.yaml \
 	  --truth bags/board_demo/truth.yaml --output out/board_demo_result.yaml \
 	  --overlay out/board_demo_overlay.png
+
+demo-targetless: $(STAMP)
+	$(BIN)/lidar-cam-calib calibrate targetless bags/targetless_demo --params config/targetless_demo.yaml \
+	  --truth bags/targetless_demo/truth.yaml --output out/targetless_demo_result.yaml \
+	  --overlay out/targetless_demo_overlay.png
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
