@@ -879,8 +879,14 @@ def run_node(node_cls: type, args: list[str] | None = None) -> int:
             except Exception:  # noqa: BLE001
                 pass
         rclpy.try_shutdown()
-        if node is not None and not clean:
-            # a fit is still running in the worker: do not wait for it
+        import threading
+
+        busy = [t for t in threading.enumerate()
+                if t is not threading.main_thread() and not t.daemon and t.is_alive()]
+        if node is not None and (not clean or busy):
+            # a fit is still running in the worker, or an executor thread is still in a callback
+            # (the interpreter would join it at exit, seen to take 10 s on a loaded machine): do
+            # not wait for them; every file the node writes is written synchronously already
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(code)
