@@ -149,8 +149,8 @@ def test_kitti_window_scale_from_lidar_odometry():
 def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     """One simulated slow-set window (family seed 2: HDL-64E without per-point time, 9 km/h, camera
     yaw -8 deg), clock offset known: ``ours`` is accepted and close to the truth, and the truth lies
-    inside its covariance. No initial guess enters. (Tolerances are what the method reaches at the
-    bench's 644 px width, not yet the issue's goals: see the README's target-less section.)"""
+    inside its covariance. No initial guess enters. (Measured at the bench's 644 px width: 0.42/0.33 px,
+    0.13 deg, 9 mm; the tolerances leave room for changes elsewhere in the pipeline.)"""
     from lidar_cam_calib.bench.targetless import bench_run
     from lidar_cam_calib.sim.street_world import sample_street_family, simulate_drive
     sc = sample_street_family(2, "slow")
@@ -158,7 +158,9 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     r = bench_run(run, 2, "slow", solvers=("ours",), known_offset=True)["solvers"]["ours"]
     assert r["accepted"], r.get("reason")
     assert r["rotation_error_deg"] < 0.3
-    assert r["translation_error_mm"] < 150.0
-    assert max(r["x_error_px"], r["y_error_px"]) < 3.0
+    # the edge refinement (LiDAR silhouettes on image edges) fixed the translation along the street
+    assert r["metrics"]["edge_applied"] == 1
+    assert r["translation_error_mm"] < 40.0
+    assert max(r["x_error_px"], r["y_error_px"]) < 1.2
     assert r["mahalanobis2"] < 22.5  # chi-square, 6 dof, 99.9 %
     assert r["metrics"]["hausdorff_m"] < 0.05

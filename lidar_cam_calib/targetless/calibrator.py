@@ -35,6 +35,12 @@ compatibility test), ``ours``:
 * translation by a layered bird's-eye cross-correlation (then a
   translation-only point-to-plane ICP with the precise near camera points as
   the source, moving LiDAR points left out);
+* the translation refined on the images (:mod:`.edges`): the LiDAR silhouettes
+  and intensity steps of the reference sweep, projected into the first images
+  of the window (each with its odometry pose), put on the Canny edges (1-D
+  search along the driving direction, then a small 3-D step); kept when the
+  improvement is significant and the images agree, its spread then replaces
+  the along-the-street prior in the covariance;
 * a second gate on the above-ground partial Hausdorff distance, the
   covariance from the Wahba weights and the ICP information plus an
   along-the-street and an isotropic term; PnP on every registered point.
@@ -62,6 +68,7 @@ from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
+from .edges import EdgeConfig, refine_translation
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, point_motion,
                       voxel_down)
 from .frame import CameraFrame, LidarSweep
@@ -137,10 +144,24 @@ class TargetlessConfig:
     dense_refs: int = cfg_field(4, "frames the densification starts flow tracks from", range=(1, 30))
     covariance_inflation: float = cfg_field(3.0, "factor on the ICP covariance for correlated residuals",
                                             range=(1.0, 1000.0))
+    ours_edge_refine: bool = cfg_field(True, "ours: refine the translation along the driving direction by "
+                                             "putting the LiDAR edges on the image edges")
+    ours_edge_images: int = cfg_field(4, "ours: images of the window the edge refinement uses", range=(1, 30))
+    ours_edge_full: bool = cfg_field(True, "ours: after the 1-D search along the driving direction, a small 3-D "
+                                           "translation refinement")
+    ours_edge_min_t: float = cfg_field(3.0, "ours: the edge refinement is kept when it lowers the edge score "
+                                            "significantly (paired t statistic over the edge points)",
+                                       range=(0.0, 100.0))
+    ours_edge_max_spread_m: float = cfg_field(0.03, "ours: ... and the standard error of the per-image optima "
+                                                    "along the driving direction is below this",
+                                              range=(0.001, 1.0))
+    ours_edge_sigma_floor_m: float = cfg_field(0.03, "ours: 1-sigma floor of the edge-refined translation along "
+                                                     "the driving direction", range=(0.0, 1.0))
     seed: int = cfg_field(0, "random seed of the RANSAC steps", range=(0, 2**31 - 1))
     objects: ObjectConfig = dataclasses.field(default_factory=lambda: ObjectConfig(radius_m=30.0))
     align: AlignConfig = dataclasses.field(default_factory=AlignConfig)
     sfm: SfmConfig = dataclasses.field(default_factory=SfmConfig)
+    edges: EdgeConfig = dataclasses.field(default_factory=EdgeConfig)
     ours_sfm: SfmConfig = dataclasses.field(default_factory=lambda: SfmConfig(
         match_window=7, init_parallax_cap_px=1000.0, ratio=0.7, klt_tracks=1500, ba_solver="schur"))
 
@@ -524,6 +545,29 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     else:
         T_final_sweep = T_chain
     T_final = T_final_sweep @ T_sweep_img
+    # driving direction in the camera frame (LiDAR x motion mapped into the camera)
+    vdir = T_final[:3, :3] @ (link.T[:3, 3] / max(np.linalg.norm(link.T[:3, 3]), 1e-9))
+    edge = None
+    if ours and cfg.ours_edge_refine:
+        t5 = time.perf_counter()
+        T_si = [inv_T(poses[jr]) @ P for P in P_img[:cfg.ours_edge_images]]
+        edge = refine_translation(ims[:cfg.ours_edge_images], cam, ref_sweep.points, lid, ref_sweep.intensity,
+                                  static_pts, T_final, T_si, vdir, cfg.edges, full=cfg.ours_edge_full)
+        tm["edges"] = time.perf_counter() - t5
+        applied = False
+        if edge is not None:
+            gain = (edge.cost0 - edge.cost) / max(edge.cost0, 1e-9)
+            # keep it only when it clearly improves the score and the images agree
+            applied = edge.tstat >= cfg.ours_edge_min_t and edge.sigma_m <= cfg.ours_edge_max_spread_m
+            metrics.update({"edge_points": edge.n_points, "edge_cost0_px": edge.cost0, "edge_cost_px": edge.cost,
+                            "edge_gain": gain, "edge_t": edge.tstat, "edge_delta_along_m": float(edge.delta @ vdir),
+                            "edge_delta_norm_m": float(np.linalg.norm(edge.delta)), "edge_sigma_m": edge.sigma_m})
+            if applied:
+                T_final = T_final.copy()
+                T_final[:3, 3] += edge.delta
+        metrics["edge_applied"] = int(applied)
+        if not applied:
+            edge = None
     diag.T_final = T_final
     tm["pnp"] = time.perf_counter() - t4
     tm["total"] = time.perf_counter() - t0
@@ -558,14 +602,16 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     # scale: a relative error e moves the registered translation by about e * |t|
     tcam = T_final[:3, 3]
     cov[3:, 3:] += np.outer(tcam, tcam) * scale_rel ** 2 + np.eye(3) * (scale_rel * 0.5) ** 2 * 0.01
-    # clock: translation along the driving direction (LiDAR x motion mapped into the camera)
-    vdir = T_final[:3, :3] @ (link.T[:3, 3] / max(np.linalg.norm(link.T[:3, 3]), 1e-9))
+    # clock: translation along the driving direction
     cov[3:, 3:] += np.outer(vdir, vdir) * (speed * cfg.time_offset_sigma_s) ** 2
     if ours:
         # the camera cloud's depth ahead (what fixes the translation along a street) carries a bias
         # correlated through the SfM poses that the ICP information does not see
-        cov[3:, 3:] += np.outer(vdir, vdir) * cfg.ours_along_motion_sigma_m ** 2 \
-            + np.eye(3) * cfg.ours_translation_floor_m ** 2
+        # (after the edge refinement: its per-image spread plus a floor for what the spread does not see, the
+        # coupling with the rotation error above all)
+        s_along = math.hypot(edge.sigma_m, cfg.ours_edge_sigma_floor_m) if edge is not None \
+            else cfg.ours_along_motion_sigma_m
+        cov[3:, 3:] += np.outer(vdir, vdir) * s_along ** 2 + np.eye(3) * cfg.ours_translation_floor_m ** 2
     metrics["icp_rms_m"] = float(icp.rms_m) if icp is not None else float("nan")
     metrics["icp_scale"] = float(scale_icp)
     diag.metrics = metrics

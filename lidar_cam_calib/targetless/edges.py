@@ -1,0 +1,276 @@
+"""Translation refinement from LiDAR edges against image edges (ROS-free).
+
+A street is nearly degenerate along its axis for cloud-to-cloud registration,
+and the SfM camera cloud carries a depth bias correlated through its poses.
+The image itself does not: the silhouettes of poles, trunks and kerbs, and the
+ends of painted dashes, sit at pixels that move when the camera moves along the
+street. This module measures that directly:
+
+* LiDAR edges, per scan line (rings found by clustering the elevation of the
+  raw points, each ring ordered by azimuth): the near point of a depth jump
+  (silhouette) and the midpoint of an intensity jump on a continuous surface
+  (paint on asphalt);
+* image edges: Canny on the blurred grey image, then its distance transform;
+* the score of a translation offset ``delta`` (camera frame) is the robust
+  (truncated) mean distance of the projected LiDAR edges to the nearest image
+  edge, over several images of the window, each with its own LiDAR pose from
+  the odometry; points hidden from the camera (a z-buffer of all static LiDAR
+  points) or outside the image at ``delta = 0`` are left out for every
+  ``delta`` so the score compares the same points;
+* a 1-D coarse-to-fine search along one direction (the driving direction),
+  then optionally a small 3-D refinement; the spread of the per-image optima
+  gives the uncertainty.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..core.calibrator import cfg_field
+from ..core.camera import CameraModel
+from ..core.geometry import inv_T, transform_points
+
+
+@dataclasses.dataclass
+class EdgeConfig:
+    depth_jump_m: float = cfg_field(0.3, "silhouette: the far neighbour on the scan line is at least this farther "
+                                         "...", range=(0.05, 10.0))
+    depth_jump_rel: float = cfg_field(0.08, "... and this fraction of the near range farther", range=(0.0, 1.0))
+    smooth_rel: float = cfg_field(0.02, "a silhouette's near side must be continuous: its other neighbour "
+                                        "within this fraction of the range (+5 cm)", range=(0.0, 1.0))
+    intensity_jump: float = cfg_field(0.25, "paint edge: intensity step over the sweep's 95th percentile",
+                                      range=(0.01, 10.0))
+    max_range_m: float = cfg_field(20.0, "LiDAR edges farther than this are left out", range=(2.0, 200.0))
+    min_range_m: float = cfg_field(1.5, "LiDAR edges nearer than this are left out", range=(0.0, 50.0))
+    truncate_px: float = cfg_field(4.0, "robust score: distances to the image edges truncated here "
+                                        "(occlusion, missing edges)", range=(0.5, 100.0))
+    coarse_truncate_px: float = cfg_field(10.0, "the same for the coarse search", range=(0.5, 100.0))
+    search_m: float = cfg_field(0.5, "1-D search half-width along the driving direction", range=(0.01, 5.0))
+    coarse_step_m: float = cfg_field(0.02, "coarse 1-D search step", range=(0.001, 1.0))
+    fine_step_m: float = cfg_field(0.004, "fine 1-D search step", range=(0.0005, 0.5))
+    max_3d_m: float = cfg_field(0.1, "the 3-D refinement stays within this of the 1-D optimum", range=(0.0, 2.0))
+    blur_sigma_px: float = cfg_field(1.0, "Gaussian blur before Canny", range=(0.0, 10.0))
+    min_points: int = cfg_field(150, "fewest visible LiDAR edge points (all images)", range=(10, 100000))
+
+
+@dataclasses.dataclass
+class EdgeResult:
+    delta: np.ndarray          # (3,) translation offset in the camera frame
+    sigma_m: float             # 1-sigma of the offset along the search direction
+    cost0: float               # score at delta = 0 (px)
+    cost: float                # score at the optimum (px)
+    tstat: float               # paired t statistic of the per-point improvement
+    n_points: int
+    per_image_m: np.ndarray    # per-image optima along the direction (m)
+    profile: np.ndarray        # (K,2) offsets (m) and scores of the fine 1-D profile
+
+
+def _rings(raw: np.ndarray, gap_deg: float = 0.08) -> np.ndarray:
+    """Ring label per point from the clustered elevation angles (-1 for stray points)."""
+    r = np.linalg.norm(raw, axis=1)
+    el = np.degrees(np.arcsin(np.clip(raw[:, 2] / np.maximum(r, 1e-9), -1, 1)))
+    order = np.argsort(el)
+    es = el[order]
+    cut = np.flatnonzero(np.diff(es) > gap_deg)
+    lab_sorted = np.zeros(es.size, int)
+    lab_sorted[cut + 1] = 1
+    lab_sorted = np.cumsum(lab_sorted)
+    counts = np.bincount(lab_sorted)
+    good = counts[lab_sorted] >= 50
+    lab = np.full(raw.shape[0], -1, int)
+    lab[order[good]] = lab_sorted[good]
+    return lab
+
+
+def lidar_edges(raw: np.ndarray, pts: np.ndarray, intensity: np.ndarray | None, cfg: EdgeConfig,
+                keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(edge points (M,3) in the frame of ``pts``, kind (M,): 0 silhouette, 1 intensity).
+    ``raw``: the points as measured (ring and azimuth order), ``pts``: the same points de-skewed;
+    ``keep``: points allowed to form an edge (static)."""
+    ring = _rings(raw)
+    rng = np.linalg.norm(raw, axis=1)
+    az = np.arctan2(raw[:, 1], raw[:, 0])
+    order = np.lexsort((az, ring))
+    order = order[ring[order] >= 0]
+    a, b = order[:-1], order[1:]
+    same = ring[a] == ring[b]
+    daz = np.abs(np.angle(np.exp(1j * (az[b] - az[a]))))
+    step = np.median(daz[same]) if same.any() else 0.0
+    adj = same & (daz < 3.0 * max(step, 1e-5))
+    if keep is not None:
+        adj &= keep[a] & keep[b]
+    ra, rb = rng[a], rng[b]
+    near = np.minimum(ra, rb)
+    jump = np.abs(ra - rb) > np.maximum(cfg.depth_jump_m, cfg.depth_jump_rel * near)
+    inr = (near >= cfg.min_range_m) & (near <= cfg.max_range_m)
+    # the near side must be a continuous surface (its other neighbour at about the same range): leaves
+    # out foliage and other range noise
+    cont = adj & (np.abs(ra - rb) < cfg.smooth_rel * near + 0.05)
+    prev_ok = np.concatenate([[False], cont[:-1]])  # pair j-1 continuous: a's far side
+    next_ok = np.concatenate([cont[1:], [False]])   # pair j+1 continuous: b's far side
+    a_near = ra < rb
+    sil = adj & jump & inr & np.where(a_near, prev_ok, next_ok)
+    idx = np.where(a_near[sil], a[sil], b[sil])
+    # the silhouette lies between the two rays: put it on the mean ray at the near range (the near point
+    # alone sits inside the object by up to one azimuth step), moved as the near point was de-skewed
+    ua = raw[a[sil]] / ra[sil, None]
+    ub = raw[b[sil]] / rb[sil, None]
+    um = ua + ub
+    um /= np.maximum(np.linalg.norm(um, axis=1, keepdims=True), 1e-12)
+    out = [pts[idx] + um * near[sil, None] - raw[idx]]
+    kind = [np.zeros(idx.size, int)]
+    if intensity is not None and intensity.size == raw.shape[0]:
+        scale = max(float(np.percentile(intensity, 95)), 1e-9)
+        di = np.abs(intensity[a] - intensity[b]) / scale
+        cont = np.abs(ra - rb) < 0.05 * near + 0.05
+        pt = adj & cont & inr & (di > cfg.intensity_jump)
+        out.append(0.5 * (pts[a[pt]] + pts[b[pt]]))
+        kind.append(np.ones(int(pt.sum()), int))
+    return np.concatenate(out), np.concatenate(kind)
+
+
+def image_distance(image: np.ndarray, cfg: EdgeConfig) -> np.ndarray:
+    """Distance (px, float32) of every pixel to the nearest Canny edge."""
+    import cv2
+    g = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if cfg.blur_sigma_px > 0:
+        g = cv2.GaussianBlur(g, (0, 0), cfg.blur_sigma_px)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1)
+    mag = np.hypot(gx, gy)
+    hi = float(np.percentile(mag, 90))
+    e = cv2.Canny(g, 0.4 * hi, hi, L2gradient=True)
+    return cv2.distanceTransform(255 - e, cv2.DIST_L2, 5).astype(np.float32)
+
+
+def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear sample of ``img`` at (N,2) pixels (inside the image)."""
+    h, w = img.shape
+    x = np.clip(uv[:, 0], 0, w - 1.001)
+    y = np.clip(uv[:, 1], 0, h - 1.001)
+    x0, y0 = x.astype(int), y.astype(int)
+    fx, fy = x - x0, y - y0
+    return (img[y0, x0] * (1 - fx) * (1 - fy) + img[y0, x0 + 1] * fx * (1 - fy)
+            + img[y0 + 1, x0] * (1 - fx) * fy + img[y0 + 1, x0 + 1] * fx * fy)
+
+
+def _visible(cam: CameraModel, T: np.ndarray, edges: np.ndarray, cloud: np.ndarray, cell_px: int = 4,
+             margin_px: float = 8.0) -> np.ndarray:
+    """Edge points inside the image (with a margin) and not hidden behind other LiDAR points."""
+    q = transform_points(T, edges)
+    uv, ok = cam.project(q)
+    ok &= (uv[:, 0] > margin_px) & (uv[:, 0] < cam.width - margin_px) & \
+          (uv[:, 1] > margin_px) & (uv[:, 1] < cam.height - margin_px) & (q[:, 2] > 1.0)
+    qc = transform_points(T, cloud)
+    uvc, okc = cam.project(qc)
+    okc &= qc[:, 2] > 0.5
+    gw, gh = cam.width // cell_px + 1, cam.height // cell_px + 1
+    zb = np.full(gw * gh, np.inf)
+    cc = (uvc[okc] / cell_px).astype(int)
+    np.minimum.at(zb, cc[:, 1] * gw + cc[:, 0], qc[okc, 2])
+    zb = zb.reshape(gh, gw)
+    # a point hidden by any nearer point in its 3x3 cells
+    zpad = np.pad(zb, 1, constant_values=np.inf)
+    zmin = np.min(np.stack([zpad[1 + dy:gh + 1 + dy, 1 + dx:gw + 1 + dx]
+                            for dy in (-1, 0, 1) for dx in (-1, 0, 1)]), axis=0)
+    ce = np.clip((uv / cell_px).astype(int), 0, [gw - 1, gh - 1]) if uv.size else np.zeros((0, 2), int)
+    zcell = zmin[ce[:, 1], ce[:, 0]]
+    ok &= q[:, 2] <= zcell + 0.3 + 0.05 * q[:, 2]
+    return ok
+
+
+def refine_translation(images: list, cam: CameraModel, raw: np.ndarray, pts: np.ndarray,
+                       intensity: np.ndarray | None, static: np.ndarray, X: np.ndarray,
+                       T_sweep_imgs: list, direction: np.ndarray, cfg: EdgeConfig | None = None,
+                       full: bool = False) -> EdgeResult | None:
+    """Offset of the translation of the extrinsic ``X`` (camera <- LiDAR at exposure 0) that best puts
+    the LiDAR edges of one sweep on the image edges. ``pts``: de-skewed sweep points (sweep frame),
+    ``raw``: as measured, ``static``: points that did not move; ``T_sweep_imgs[k]``: the LiDAR at the
+    sweep stamp <- the LiDAR at exposure k (odometry), one per image; ``direction``: unit vector (camera
+    frame) of the 1-D search. ``full``: then a small 3-D refinement. None when too few edges are seen."""
+    cfg = cfg or EdgeConfig()
+    d = np.asarray(direction, float)
+    d = d / max(np.linalg.norm(d), 1e-12)
+    E, _kind = lidar_edges(raw, pts, intensity, cfg, keep=static)
+    if E.shape[0] < cfg.min_points:
+        return None
+    cloud = pts[static][::2]
+    views = []
+    for img, Tsi in zip(images, T_sweep_imgs):
+        Tk = X @ inv_T(Tsi)  # camera k <- sweep
+        vis = _visible(cam, Tk, E, cloud)
+        if vis.sum() < cfg.min_points // 3:
+            continue
+        views.append((image_distance(img, cfg), Tk, E[vis]))
+    n = sum(v[2].shape[0] for v in views)
+    if n < cfg.min_points:
+        return None
+
+    def point_costs(delta: np.ndarray, trunc: float) -> list:
+        out = []
+        for dt, Tk, Ek in views:
+            uv, _ = cam.project(Ek @ Tk[:3, :3].T + Tk[:3, 3] + delta)
+            out.append(np.minimum(_sample(dt, uv), trunc))
+        return out
+
+    def costs(delta: np.ndarray, trunc: float) -> tuple[float, np.ndarray]:
+        v = point_costs(delta, trunc)
+        return float(np.concatenate(v).mean()), np.array([x.mean() for x in v])
+
+    def line(c: float, half: float, step: float, trunc: float):
+        s = np.arange(c - half, c + half + 0.5 * step, step)
+        res = [costs(si * d, trunc) for si in s]
+        return s, np.array([r[0] for r in res]), np.array([r[1] for r in res])
+
+    cost0, _ = costs(np.zeros(3), cfg.truncate_px)
+    s, f, _ = line(0.0, cfg.search_m, cfg.coarse_step_m, cfg.coarse_truncate_px)
+    ic = int(np.argmin(f))
+    if ic in (0, len(s) - 1):  # no minimum inside the search range: the edges do not constrain it
+        return None
+    c = float(s[ic])
+    s, f, per = line(c, 4 * cfg.coarse_step_m, cfg.fine_step_m, cfg.truncate_px)
+    i = int(np.argmin(f))
+    best = float(s[i])
+    if 0 < i < len(s) - 1:  # parabola through the three lowest
+        den = f[i - 1] - 2 * f[i] + f[i + 1]
+        if den > 0:
+            best += 0.5 * (f[i - 1] - f[i + 1]) / den * (s[1] - s[0])
+    per_img = s[np.argmin(per, axis=0)]
+    delta = best * d
+    if full:
+        delta = _refine3(costs, delta, cfg)
+    cost, _ = costs(delta, cfg.truncate_px)
+    # significance of the improvement: paired per-point differences (t statistic)
+    diff = np.concatenate(point_costs(np.zeros(3), cfg.truncate_px)) - \
+        np.concatenate(point_costs(delta, cfg.truncate_px))
+    tstat = float(diff.mean() / max(diff.std(ddof=1) / np.sqrt(diff.size), 1e-12))
+    k = len(per_img)
+    spread = float(np.std(per_img, ddof=1) / np.sqrt(k)) if k >= 2 else cfg.search_m
+    return EdgeResult(delta=delta, sigma_m=spread, cost0=cost0, cost=cost, tstat=tstat, n_points=n,
+                      per_image_m=per_img, profile=np.stack([s, f], axis=1))
+
+
+def _refine3(costs, delta: np.ndarray, cfg: EdgeConfig) -> np.ndarray:
+    """Small 3-D coordinate descent around ``delta`` (camera axes), halving steps."""
+    x0 = delta.copy()
+    x = delta.copy()
+    fx, _ = costs(x, cfg.truncate_px)
+    step = 0.02
+    while step >= cfg.fine_step_m / 2:
+        moved = False
+        for ax in range(3):
+            for sg in (-1.0, 1.0):
+                y = x.copy()
+                y[ax] += sg * step
+                if np.linalg.norm(y - x0) > cfg.max_3d_m:
+                    continue
+                fy, _ = costs(y, cfg.truncate_px)
+                if fy < fx:
+                    x, fx, moved = y, fy, True
+        if not moved:
+            step /= 2
+    return x
+
+
+__all__ = ["EdgeConfig", "EdgeResult", "image_distance", "lidar_edges", "refine_translation"]

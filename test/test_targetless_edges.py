@@ -1,0 +1,90 @@
+"""Edge-based translation refinement (lidar_cam_calib.targetless.edges) on a synthetic scene:
+boards in front of a wall, seen by a ring LiDAR and rendered by ray casting into a pinhole image."""
+import numpy as np
+
+from lidar_cam_calib.core.camera import CameraModel
+from lidar_cam_calib.core.geometry import R_BODY_OPTICAL, make_T
+from lidar_cam_calib.targetless.edges import EdgeConfig, lidar_edges, refine_translation
+
+# boards x = const (LiDAR frame: x forward, y left, z up): (x, y0, y1, z0, z1, brightness)
+BOARDS = [(6.0, 2.5, 3.0, -1.5, 2.0, 0.9), (9.0, -4.0, -3.4, -1.5, 2.5, 0.8), (12.0, 3.5, 5.0, -1.0, 1.0, 0.95),
+          (8.0, -2.5, -2.3, -1.5, 3.0, 0.85), (15.0, -6.0, -5.0, -1.5, 2.0, 0.9), (7.0, 4.0, 4.3, -1.5, 2.5, 0.9)]
+WALL_X = 30.0
+
+
+def _cast(o: np.ndarray, d: np.ndarray, boards=BOARDS) -> tuple[np.ndarray, np.ndarray]:
+    """Range along unit rays ``d`` from ``o`` (LiDAR frame) and the brightness hit."""
+    t = np.full(d.shape[0], np.inf)
+    b = np.full(d.shape[0], 0.3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tw = (WALL_X - o[0]) / d[:, 0]
+        hit = tw > 0
+        t[hit], b[hit] = tw[hit], 0.3 + 0.1 * (np.floor(((o[1] + tw * d[:, 1]) * 2)[hit]) % 2)
+        for x, y0, y1, z0, z1, br in boards:
+            tb = (x - o[0]) / d[:, 0]
+            p = o + tb[:, None] * d
+            m = (tb > 0) & (tb < t) & (p[:, 1] >= y0) & (p[:, 1] <= y1) & (p[:, 2] >= z0) & (p[:, 2] <= z1)
+            t[m], b[m] = tb[m], br
+    return t, b
+
+
+def _scene(boards=BOARDS):
+    cam = CameraModel.from_K(480, 320, 300.0, 300.0, 240.0, 160.0)
+    R = R_BODY_OPTICAL.T  # camera <- LiDAR
+    X = make_T(R, -R @ np.array([0.3, 0.1, -0.2]))  # camera 30 cm ahead, 10 cm left, 20 cm below the LiDAR
+    # image: ray cast from the camera centre
+    u, v = np.meshgrid(np.arange(cam.width) + 0.0, np.arange(cam.height) + 0.0)
+    rays_c = np.stack([(u - 240.0) / 300.0, (v - 160.0) / 300.0, np.ones_like(u)], axis=-1).reshape(-1, 3)
+    rays_l = rays_c @ R  # R^T applied to each ray
+    rays_l /= np.linalg.norm(rays_l, axis=1, keepdims=True)
+    _, br = _cast(np.array([0.3, 0.1, -0.2]), rays_l, boards)
+    img = np.clip(br.reshape(cam.height, cam.width) * 255, 0, 255).astype(np.uint8)
+    # LiDAR: 32 rings, 0.2 deg azimuth steps over the front half
+    el = np.radians(np.linspace(-15.0, 15.0, 32))
+    az = np.radians(np.arange(-80.0, 80.0, 0.2))
+    E, A = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1).reshape(-1, 3)
+    t, _ = _cast(np.zeros(3), d, boards)
+    ok = np.isfinite(t)
+    pts = d[ok] * t[ok, None]
+    return cam, img, pts, X
+
+
+def test_lidar_edges_finds_the_board_silhouettes():
+    _, _, pts, _ = _scene()
+    E, kind = lidar_edges(pts, pts, None, EdgeConfig())
+    assert E.shape[0] > 100 and np.all(kind == 0)
+    # every silhouette point lies on a board side, on the near surface
+    on_side = np.zeros(E.shape[0], bool)
+    for x, y0, y1, _z0, _z1, _b in BOARDS:
+        on_side |= (np.abs(E[:, 0] - x) < 0.05) & ((np.abs(E[:, 1] - y0) < 0.1) | (np.abs(E[:, 1] - y1) < 0.1))
+    assert on_side.mean() > 0.95
+
+
+def test_refine_translation_recovers_an_offset_along_the_driving_direction():
+    cam, img, pts, X = _scene()
+    d = X[:3, :3] @ np.array([1.0, 0.0, 0.0])  # driving direction (LiDAR x) in the camera frame
+    static = np.ones(pts.shape[0], bool)
+    for off in (-0.15, 0.12):
+        Xe = X.copy()
+        Xe[:3, 3] += off * d
+        r = refine_translation([img, img], cam, pts, pts, None, static, Xe, [np.eye(4), np.eye(4)], d,
+                               EdgeConfig(min_points=50))
+        assert r is not None
+        assert abs(r.delta @ d + off) < 0.02, (off, r.delta)
+        assert r.cost < r.cost0
+
+
+def test_refine_translation_full_keeps_the_truth():
+    cam, img, pts, X = _scene()
+    d = X[:3, :3] @ np.array([1.0, 0.0, 0.0])
+    r = refine_translation([img], cam, pts, pts, None, np.ones(pts.shape[0], bool), X, [np.eye(4)], d,
+                           EdgeConfig(min_points=50), full=True)
+    assert r is not None and np.linalg.norm(r.delta) < 0.02
+
+
+def test_refine_translation_needs_edges():
+    cam, img, pts, X = _scene(boards=[])
+    d = X[:3, :3] @ np.array([1.0, 0.0, 0.0])
+    assert refine_translation([img], cam, pts, pts, None, np.ones(pts.shape[0], bool), X, [np.eye(4)], d) is None
+
