@@ -276,52 +276,9 @@ def icp_point_to_plane(src: np.ndarray, dst: np.ndarray, T0: np.ndarray, cfg: Al
     return IcpResult(make_T(R, t), float(scale), rms, ncorr, H, sig)
 
 
-__all__ = ["AlignConfig", "HoughResult", "IcpResult", "bev_translation", "compatible_pairs", "estimate_normals",
+__all__ = ["AlignConfig", "HoughResult", "IcpResult", "compatible_pairs", "estimate_normals",
            "fit_yaw_translation", "hough_align", "icp_point_to_plane", "icp_translation", "layered_bev_translation",
-           "motion_yaw", "rz", "wahba"]
-
-
-def motion_yaw(m_target: np.ndarray, m_source: np.ndarray) -> float:
-    """Yaw taking the levelled source motion direction onto the target's (xy components)."""
-    a = np.arctan2(m_target[1], m_target[0])
-    b = np.arctan2(m_source[1], m_source[0])
-    return float(np.angle(np.exp(1j * (a - b))))
-
-
-def bev_translation(target: np.ndarray, source: np.ndarray, yaw: float, cell_m: float = 0.2,
-                    radius_m: float = 8.0, z_range: tuple = (0.3, 4.0), extent_m: float = 40.0
-                    ) -> tuple[np.ndarray, float]:
-    """Horizontal translation (dx, dy) maximising the overlap of the bird's-eye
-    occupancy of ``Rz(yaw) source + t`` with ``target`` (levelled clouds,
-    ground at z = 0), by FFT cross-correlation; returns (t (3,), peak ratio:
-    best score over the best score outside the peak's 1 m neighbourhood)."""
-    from scipy import ndimage
-
-    def grid(p):
-        m = (p[:, 2] > z_range[0]) & (p[:, 2] < z_range[1]) & (np.abs(p[:, 0]) < extent_m) & \
-            (np.abs(p[:, 1]) < extent_m)
-        n = int(np.ceil(2 * extent_m / cell_m))
-        ij = np.floor((p[m, :2] + extent_m) / cell_m).astype(int)
-        g = np.zeros((n, n), np.float32)
-        np.add.at(g, (ij[:, 0], ij[:, 1]), 1.0)
-        g = (g > 0).astype(np.float32)
-        return ndimage.grey_dilation(g, size=(3, 3))
-
-    src = source @ rz(yaw).T
-    G_t, G_s = grid(target), grid(src)
-    n = G_t.shape[0]
-    F = np.fft.rfft2(G_t, s=(2 * n, 2 * n)) * np.conj(np.fft.rfft2(G_s, s=(2 * n, 2 * n)))
-    corr = np.fft.irfft2(F, s=(2 * n, 2 * n))
-    r = int(np.ceil(radius_m / cell_m))
-    shifts = np.arange(-r, r + 1)
-    sub = corr[np.ix_(shifts % (2 * n), shifts % (2 * n))]
-    i, j = np.unravel_index(int(np.argmax(sub)), sub.shape)
-    best = float(sub[i, j])
-    mask = np.ones_like(sub, bool)
-    k = int(np.ceil(1.0 / cell_m))
-    mask[max(0, i - k):i + k + 1, max(0, j - k):j + k + 1] = False
-    second = float(sub[mask].max()) if np.any(mask) else 0.0
-    return np.array([shifts[i] * cell_m, shifts[j] * cell_m, 0.0]), best / max(second, 1e-9)
+           "rz", "wahba"]
 
 
 def layered_bev_translation(target: np.ndarray, source: np.ndarray, yaw: float, cell_m: float = 0.1,

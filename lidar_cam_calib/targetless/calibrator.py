@@ -136,8 +136,6 @@ class TargetlessConfig:
                                                 range=(0.0, 5.0))
     ours_ground_sigma_deg: float = cfg_field(0.1, "ours: 1-sigma of a ground normal (Wahba weight)",
                                              range=(0.001, 10.0))
-    motion_yaw_window_deg: float = cfg_field(3.0, "ours: Hough yaws within this of the yaw from the travel "
-                                                  "directions", range=(0.25, 180.0))
     coarse_radius_m: float = cfg_field(6.0, "ours: horizontal translation search radius between the levelled "
                                             "clouds (lever arm plus the motion between sweep and image)",
                                        range=(0.5, 30.0))
