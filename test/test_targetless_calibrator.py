@@ -164,3 +164,33 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     assert max(r["x_error_px"], r["y_error_px"]) < 1.2
     assert r["mahalanobis2"] < 22.5  # chi-square, 6 dof, 99.9 %
     assert r["metrics"]["hausdorff_m"] < 0.05
+
+
+def test_predicted_projection_error_matches_sampled_errors():
+    """The gate's predicted mean projection error equals the mean error of extrinsics drawn from the
+    covariance (the bench's x_error_px / y_error_px), and grows with the translation uncertainty."""
+    from lidar_cam_calib.bench.targetless import projection_errors
+    from lidar_cam_calib.core.camera import CameraModel
+    from lidar_cam_calib.core.geometry import make_T, so3_exp
+    from lidar_cam_calib.targetless.calibrator import predicted_projection_px
+    rng = np.random.default_rng(3)
+    cam = CameraModel(640, 480, np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), np.zeros(5))
+    T = make_T(so3_exp(np.array([0.02, -0.01, 0.03])), np.array([0.1, -0.2, 0.3]))
+    pts_c = np.column_stack([rng.uniform(-6, 6, 3000), rng.uniform(-2, 2, 3000), rng.uniform(3, 30, 3000)])
+    pts_l = (pts_c - T[:3, 3]) @ T[:3, :3]  # LiDAR points that land in front of the camera
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T * 1e-5 + np.diag([1e-6, 1e-6, 1e-6, 4e-4, 4e-4, 4e-4])
+    px, py = predicted_projection_px(cam, T, cov, pts_l, max_points=3000)
+    L = np.linalg.cholesky(cov)
+    ex, ey = [], []
+    for _ in range(200):
+        e = L @ rng.normal(size=6)
+        Te = make_T(so3_exp(e[:3]) @ T[:3, :3], T[:3, 3] + e[3:])
+        a, b = projection_errors(cam, Te, T, pts_l)
+        ex.append(a)
+        ey.append(b)
+    assert px == pytest.approx(np.mean(ex), rel=0.1) and py == pytest.approx(np.mean(ey), rel=0.1)
+    # it is linear in the sigma: twice the translation sigma, twice the predicted error
+    c1 = np.diag([0, 0, 0, 1e-4, 1e-4, 1e-4])
+    p1, p2 = predicted_projection_px(cam, T, c1, pts_l)[0], predicted_projection_px(cam, T, 4 * c1, pts_l)[0]
+    assert p1 > 0.1 and p2 == pytest.approx(2 * p1, rel=1e-9)

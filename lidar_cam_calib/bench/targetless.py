@@ -63,6 +63,52 @@ def collect(run, cfg: TargetlessConfig) -> TargetlessCalibrator:
 FAMILY_OFFSET_SIGMA_S = 0.2 / np.sqrt(12.0)
 
 
+def solve_all(cal, base: TargetlessConfig, solvers, camera, T_true: np.ndarray, ref_points: np.ndarray,
+              vdir: np.ndarray | None) -> tuple[dict, dict, dict]:
+    """Run each solver on the calibrator's window (one SfM and one odometry shared); each record has the
+    errors against ``T_true`` (for a refused estimate too, to judge the refusal). Returns the records,
+    the shared cache and each solver's estimate (accepted or refused; None when there was none)."""
+    cache: dict = {}
+    recs: dict = {}
+    estimates: dict = {}
+    for s in solvers:
+        cfg_s = TargetlessConfig(**{**base.__dict__, "solver": s})
+        t_start = time.perf_counter()
+        rec = {}
+        diag = WindowDiagnostics()
+        try:
+            T, cov, metrics = calibrate_window(cal.images, cal.sweeps, cfg_s, diag, cache=cache)
+            rec["accepted"] = True
+        except CalibError as e:
+            rec.update({"accepted": False, "reason": str(e)})
+            T, cov, metrics = None, None, {}
+            if diag.T_final is not None:  # refused by a gate: was the refusal right?
+                ex, ey = projection_errors(camera, diag.T_final, T_true, ref_points)
+                r_deg, t_mm = pose_errors(diag.T_final, T_true)
+                rec["refused_estimate"] = {"x_error_px": ex, "y_error_px": ey, "rotation_error_deg": r_deg,
+                                           "translation_error_mm": t_mm}
+                rec["metrics"] = {k: v for k, v in diag.metrics.items() if not isinstance(v, str)}
+        rec["runtime_s"] = time.perf_counter() - t_start
+        for name, Td in (("coarse_estimate", diag.T_oba), ("icp_estimate", diag.T_icp)):
+            if Td is not None:
+                r_deg, t_mm = pose_errors(Td, T_true)
+                rec[name] = {"rotation_error_deg": r_deg, "translation_error_mm": t_mm}
+        if T is not None:
+            ex, ey = projection_errors(camera, T, T_true, ref_points)
+            r_deg, t_mm = pose_errors(T, T_true)
+            rec.update({"x_error_px": ex, "y_error_px": ey, "rotation_error_deg": r_deg,
+                        "translation_error_mm": t_mm, "mahalanobis2": mahalanobis2(T, T_true, cov),
+                        **({"translation_error_along_motion_mm": float(1000 * (T[:3, 3] - T_true[:3, 3]) @ vdir)}
+                           if vdir is not None else {}),
+                        "sigma_rotation_deg": float(np.degrees(np.sqrt(np.max(np.diag(cov)[:3])))),
+                        "sigma_translation_mm": float(1000 * np.sqrt(np.max(np.diag(cov)[3:])))})
+            rec["metrics"] = {k: (float(v) if isinstance(v, (int, float, np.floating, np.integer)) else v)
+                              for k, v in metrics.items()}
+        recs[s] = rec
+        estimates[s] = T if T is not None else diag.T_final
+    return recs, cache, estimates
+
+
 def bench_run(run, seed: int, speed: str, solvers=SOLVERS, cfg: TargetlessConfig | None = None,
               known_offset: bool = False) -> dict:
     """``known_offset``: the calibrator is told the simulated clock offset (as after a clock
@@ -89,41 +135,71 @@ def bench_run(run, seed: int, speed: str, solvers=SOLVERS, cfg: TargetlessConfig
     T_a, T_b = run.T_world_lidar(t0 - 0.05), run.T_world_lidar(t0 + 0.05)
     d_l = (inv_T(T_a) @ T_b)[:3, 3]
     vdir = T_true[:3, :3] @ (d_l / max(np.linalg.norm(d_l), 1e-9))
-    cache: dict = {}
-    for s in solvers:
-        cfg_s = TargetlessConfig(**{**base.__dict__, "solver": s})
-        t_start = time.perf_counter()
-        rec = {}
-        diag = WindowDiagnostics()
-        try:
-            T, cov, metrics = calibrate_window(cal.images, cal.sweeps, cfg_s, diag, cache=cache)
-            rec["accepted"] = True
-        except CalibError as e:
-            rec.update({"accepted": False, "reason": str(e)})
-            T, cov, metrics = None, None, {}
-            if diag.T_final is not None:  # refused by a gate: was the refusal right?
-                ex, ey = projection_errors(run.camera, diag.T_final, T_true, ref.points)
-                r_deg, t_mm = pose_errors(diag.T_final, T_true)
-                rec["refused_estimate"] = {"x_error_px": ex, "y_error_px": ey, "rotation_error_deg": r_deg,
-                                           "translation_error_mm": t_mm}
-                rec["metrics"] = {k: v for k, v in diag.metrics.items() if not isinstance(v, str)}
-        rec["runtime_s"] = time.perf_counter() - t_start
-        for name, Td in (("coarse_estimate", diag.T_oba), ("icp_estimate", diag.T_icp)):
-            if Td is not None:
-                r_deg, t_mm = pose_errors(Td, T_true)
-                rec[name] = {"rotation_error_deg": r_deg, "translation_error_mm": t_mm}
-        if T is not None:
-            ex, ey = projection_errors(run.camera, T, T_true, ref.points)
-            r_deg, t_mm = pose_errors(T, T_true)
-            rec.update({"x_error_px": ex, "y_error_px": ey, "rotation_error_deg": r_deg,
-                        "translation_error_mm": t_mm, "mahalanobis2": mahalanobis2(T, T_true, cov),
-                        "translation_error_along_motion_mm": float(1000 * (T[:3, 3] - T_true[:3, 3]) @ vdir),
-                        "sigma_rotation_deg": float(np.degrees(np.sqrt(np.max(np.diag(cov)[:3])))),
-                        "sigma_translation_mm": float(1000 * np.sqrt(np.max(np.diag(cov)[3:])))})
-            rec["metrics"] = {k: (float(v) if isinstance(v, (int, float, np.floating, np.integer)) else v)
-                              for k, v in metrics.items()}
-        out["solvers"][s] = rec
+    out["solvers"], cache, _ = solve_all(cal, base, solvers, run.camera, T_true, ref.points, vdir)
     out["sfm_runtime_s"] = float(cache.get("sfm_time", 0.0))
+    return out
+
+
+# the issue's goals for one window: what a refusal is judged against
+GOAL_PX, GOAL_DEG, GOAL_MM = 1.0, 0.2, 30.0
+OUTCOMES = ("accepted_within_goals", "accepted_within_5px", "accepted_worse_than_5px_", "refused_correctly",
+            "refused_wrongly", "refused_no_estimate")
+
+
+def outcome(r: dict) -> str:
+    """One window's outcome. A refusal is correct when the refused estimate misses a goal (1 px, 0.2 deg,
+    3 cm), wrong when it would have met all of them; a window refused before any estimate existed
+    (SfM, odometry or ICP failure) is counted apart."""
+    if r.get("accepted"):
+        px = max(r.get("x_error_px", np.inf), r.get("y_error_px", np.inf))
+        if px <= GOAL_PX and r.get("rotation_error_deg", np.inf) <= GOAL_DEG and \
+                r.get("translation_error_mm", np.inf) <= GOAL_MM:
+            return "accepted_within_goals"
+        return "accepted_within_5px" if px <= 5.0 else "accepted_worse_than_5px_"
+    e = r.get("refused_estimate")
+    if e is None:
+        return "refused_no_estimate"
+    meets = max(e["x_error_px"], e["y_error_px"]) <= GOAL_PX and e["rotation_error_deg"] <= GOAL_DEG and \
+        e["translation_error_mm"] <= GOAL_MM
+    return "refused_wrongly" if meets else "refused_correctly"
+
+
+def kitti_window(kitti_dir, start: int = 0, solvers=("ours",), overlay: str = "") -> dict:
+    """One window of a KITTI raw drive from frame ``start`` on, each solver judged against the official
+    calibration; ``overlay``: a PNG of the window's first image with the LiDAR drawn through the official
+    calibration (top) and through ``ours``'s estimate, accepted or refused (bottom)."""
+    from ..io.kitti import kitti_drive
+    cam, T_true, frames = kitti_drive(kitti_dir)
+    base = TargetlessConfig(min_motion_px=10.0 * cam.width / 1288.0)  # the paper's 10 px at 1288 px width
+    cal = TargetlessCalibrator(base)
+    for k in range(start, len(frames)):
+        t, load = frames[k]
+        cloud, img = load()
+        cal.add(LidarSweep.from_arrays(t, cloud))
+        cal.add(CameraFrame(t, img, cam))
+        if cal.ready():
+            break
+    out = {"method": "targetless", "data": "kitti", "start": start, "solvers": {}}
+    if not cal.ready():
+        out["solvers"] = {s: {"accepted": False, "reason": f"not ready: {cal.status()}"} for s in solvers}
+        return out
+    t0 = cal.images[0].stamp_s
+    ref = min(cal.sweeps, key=lambda s: abs(s.stamp_s - t0))
+    out["frames"] = [int(round(f.stamp_s * 10)) for f in cal.images]
+    out["solvers"], _, est = solve_all(cal, base, solvers, cam, T_true, ref.points, None)
+    if overlay:
+        import cv2
+
+        from ..targetless.overlay import render_overlay
+        name = "ours" if "ours" in out["solvers"] else next(iter(out["solvers"]))
+        rec, T_est = out["solvers"][name], est[name]
+        img = cal.images[0].image
+        top = render_overlay(img, cam, ref.points, T_true)
+        cv2.putText(top, "official KITTI calibration", (10, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2)
+        bot = render_overlay(img, cam, ref.points, T_est) if T_est is not None else (img * 0.5)
+        label = f"{name}: " + ("accepted" if rec.get("accepted") else "REFUSED (" + rec.get("reason", "")[13:70] + ")")
+        cv2.putText(bot, label, (10, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2)
+        cv2.imwrite(overlay, np.vstack([top, bot.astype(np.uint8)]))
     return out
 
 
@@ -141,6 +217,12 @@ def summarise(runs: list) -> dict:
                 row[k + "_p90"] = float(np.percentile(v, 90))
                 row[k + "_mean"] = float(np.mean(v))
         row["accepted_worse_than_5px"] = sum(1 for r in acc if max(r.get("x_error_px", 0), r.get("y_error_px", 0)) > 5)
+        outcomes = [outcome(r) for r in recs]
+        for k in OUTCOMES:
+            row[k] = outcomes.count(k)
+        good = sum(outcomes.count(k) for k in ("accepted_within_goals", "accepted_within_5px", "refused_correctly",
+                                               "refused_no_estimate"))
+        row["succeeded_or_correctly_refused"] = good / max(len(recs), 1)
         summ[s] = row
     return summ
 
@@ -157,10 +239,30 @@ def main(argv=None) -> int:
     ap.add_argument("--solvers", default=",".join(SOLVERS))
     ap.add_argument("--known-offset", action="store_true",
                     help="tell the calibrator the simulated camera-LiDAR clock offset (else it assumes 0)")
+    ap.add_argument("--kitti", default="", metavar="DIR",
+                    help="run windows of a KITTI raw drive instead (official calibration as truth)")
+    ap.add_argument("--starts", default="0", help="with --kitti: first frame of each window, comma separated")
+    ap.add_argument("--overlay", default="", help="with --kitti: overlay PNG of the first window")
     a = ap.parse_args(argv)
+    solvers = tuple(s for s in a.solvers.split(",") if s)
+    if a.kitti:
+        outs = []
+        for i, st in enumerate(int(x) for x in a.starts.split(",") if x):
+            res = kitti_window(a.kitti, st, solvers, overlay=a.overlay if i == 0 else "")
+            outs.append(res)
+            for name, r in res["solvers"].items():
+                e = r if r.get("accepted") else r.get("refused_estimate", {})
+                fig = (f"{e['x_error_px']:.2f}/{e['y_error_px']:.2f} px {e['rotation_error_deg']:.3f} deg "
+                       f"{e['translation_error_mm']:.0f} mm" if e else "")
+                print(f"kitti frames {res.get('frames')}: {name}: "
+                      + (f"accepted {fig} m2={r['mahalanobis2']:.1f}" if r.get("accepted")
+                         else f"REFUSED {r.get('reason', '')} " + (f"(would be {fig})" if fig else "")), flush=True)
+        if a.json:
+            with open(a.json, "w", encoding="utf-8") as fh:
+                json.dump(outs, fh, indent=1, default=float)
+        return 0
     from ..sim.street_world import sample_street_family, simulate_drive
     seeds = list(range(a.seed, a.seed + a.seeds)) if a.family else [a.seed]
-    solvers = tuple(s for s in a.solvers.split(",") if s)
     runs = []
     for sd in seeds:
         sc = sample_street_family(sd, a.speed)

@@ -140,6 +140,35 @@ def _frames(kitti_dir: Path) -> list[tuple[str, Path, Path]]:
     return [(s, imgs[s], bins[s]) for s in stems]
 
 
+def kitti_drive(kitti_dir) -> tuple:
+    """ROS-free access to a drive: ``(camera, T_camera_lidar, frames)`` with ``frames`` a list of
+    ``(stamp_s, load)`` where ``load()`` returns ``(cloud, image)``: the sweep as a dict of arrays
+    (x, y, z, intensity) and the BGR image. Stamps are the frame index / 10 Hz (the files carry none)."""
+    from lidar_cam_calib.core.camera import CameraModel
+    kitti_dir = Path(kitti_dir)
+    if not kitti_dir.is_dir():
+        raise InputError(f"KITTI folder not found: {kitti_dir}")
+    T_cl, P2 = kitti_calibration(kitti_dir)
+    frames = _frames(kitti_dir)
+
+    def loader(img_p: Path, bin_p: Path):
+        def load():
+            import cv2
+            raw = np.fromfile(bin_p, dtype=np.float32)
+            if raw.size % 4:
+                raise InputError(f"{bin_p}: {raw.size} floats is not a multiple of 4 (x y z reflectance)")
+            pts = raw.reshape(-1, 4)
+            img = cv2.imread(str(img_p), cv2.IMREAD_COLOR)
+            if img is None:
+                raise InputError(f"cannot decode image {img_p}")
+            return {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": pts[:, 3]}, img
+        return load
+    out = [(k / KITTI_RATE_HZ, loader(img_p, bin_p)) for k, (_, img_p, bin_p) in enumerate(frames)]
+    _, img0 = out[0][1]()
+    cam = CameraModel(int(img0.shape[1]), int(img0.shape[0]), P2[:, :3].copy(), np.zeros(5), "plumb_bob")
+    return cam, T_cl, out
+
+
 def kitti_to_bag(kitti_dir, out_dir, overwrite: bool = False, max_frames: int | None = None,
                  start_stamp_s: float = DEFAULT_START_STAMP_S, name: str | None = None
                  ) -> tuple[Path, Path]:

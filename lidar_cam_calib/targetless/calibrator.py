@@ -155,6 +155,12 @@ class TargetlessConfig:
                                               range=(0.001, 1.0))
     ours_edge_sigma_floor_m: float = cfg_field(0.03, "ours: 1-sigma floor of the edge-refined translation along "
                                                      "the driving direction", range=(0.0, 1.0))
+    ours_require_edge: bool = cfg_field(True, "ours, gate: refuse a window whose translation along the driving "
+                                              "direction the image edges do not confirm (clouds alone leave it "
+                                              "about ours_along_motion_sigma_m uncertain on a street)")
+    ours_max_predicted_px: float = cfg_field(
+        5.0, "ours, gate: the mean projection error in x or y that the result's own covariance predicts over "
+             "the LiDAR points in view (the 5 px a published result must never exceed)", range=(0.1, 100.0))
     seed: int = cfg_field(0, "random seed of the RANSAC steps", range=(0, 2**31 - 1))
     objects: ObjectConfig = dataclasses.field(default_factory=lambda: ObjectConfig(radius_m=30.0))
     align: AlignConfig = dataclasses.field(default_factory=AlignConfig)
@@ -612,6 +618,8 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         cov[3:, 3:] += np.outer(vdir, vdir) * s_along ** 2 + np.eye(3) * cfg.ours_translation_floor_m ** 2
     metrics["icp_rms_m"] = float(icp.rms_m) if icp is not None else float("nan")
     metrics["icp_scale"] = float(scale_icp)
+    pred = predicted_projection_px(cam, T_final, cov, ref_sweep.points)
+    metrics["predicted_x_px"], metrics["predicted_y_px"] = pred
     diag.metrics = metrics
     if haus > cfg.max_hausdorff_m and solver != "oba":
         raise CalibError(f"gate failed: Hausdorff distance {haus * 100:.1f} cm between the registered clouds > "
@@ -625,9 +633,52 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         raise CalibError(f"gate failed: Hausdorff distance above the ground {ha * 100:.1f} cm > "
                          f"{cfg.ours_max_hausdorff_above_ground_m * 100:.1f} cm (the poles, trunks and facades "
                          "do not meet; the registration slid along the street); calibration rejected")
+    if ours and cfg.ours_edge_refine and cfg.ours_require_edge and edge is None:
+        why = "no usable edges" if "edge_t" not in metrics else (
+            f"gain t = {metrics['edge_t']:.1f} (>= {cfg.ours_edge_min_t:.1f} needed), per-image spread "
+            f"{metrics['edge_sigma_m'] * 100:.1f} cm (<= {cfg.ours_edge_max_spread_m * 100:.1f} cm needed)")
+        raise CalibError("gate failed: the image edges do not confirm the translation along the driving "
+                         f"direction ({why}); without them a street leaves it uncertain by about "
+                         f"{cfg.ours_along_motion_sigma_m * 100:.0f} cm; calibration rejected (drive past "
+                         "poles, trunks, parked cars and road paint close to the camera)")
+    if ours and not (max(pred) <= cfg.ours_max_predicted_px):
+        raise CalibError(f"gate failed: the result is not certain enough (its covariance predicts a mean "
+                         f"projection error of {pred[0]:.1f} / {pred[1]:.1f} px in x / y > "
+                         f"{cfg.ours_max_predicted_px:.1f} px); calibration rejected (drive past more poles, "
+                         "trunks and facades close to the road, or a longer stretch)")
     diag.metrics = metrics
     return T_final, cov, metrics
 
 
+def predicted_projection_px(cam, T: np.ndarray, cov: np.ndarray, points: np.ndarray,
+                            max_points: int = 2000) -> tuple[float, float]:
+    """Mean absolute projection error in x and y over the LiDAR points in view that the covariance
+    ``cov`` of ``T`` predicts (the same figure the benchmark measures against the truth). ``cov`` is over
+    (rotation vector, translation) of ``T`` perturbed on the left (camera frame)."""
+    q = transform_points(T, np.asarray(points, float)[:, :3])
+    uv, z = _ideal_project(cam.K, np.eye(4), q)
+    vis = (z > 0.1) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    q = q[vis]
+    if q.shape[0] == 0:
+        return float("inf"), float("inf")
+    if q.shape[0] > max_points:
+        q = q[np.linspace(0, q.shape[0] - 1, max_points).astype(int)]
+    x, y, zz = q[:, 0], q[:, 1], q[:, 2]
+    fx, fy = float(cam.K[0, 0]), float(cam.K[1, 1])
+    # d(pixel)/d(point) times d(point)/d(rotation vector, translation) = [-[q]x | I]
+    Jq = np.zeros((q.shape[0], 2, 3))
+    Jq[:, 0, 0] = fx / zz
+    Jq[:, 0, 2] = -fx * x / zz ** 2
+    Jq[:, 1, 1] = fy / zz
+    Jq[:, 1, 2] = -fy * y / zz ** 2
+    S = np.zeros((q.shape[0], 3, 3))  # -[q]x
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = zz, -y, x
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = -zz, y, -x
+    J = np.concatenate([Jq @ S, Jq], axis=2)
+    var = np.einsum("nij,jk,nik->ni", J, cov, J)
+    sd = np.sqrt(np.maximum(var, 0.0)) * math.sqrt(2.0 / math.pi)  # E|e| of a zero-mean normal
+    return float(np.mean(sd[:, 0])), float(np.mean(sd[:, 1]))
+
+
 __all__ = ["SOLVERS", "TargetlessCalibrator", "TargetlessConfig", "WindowDiagnostics", "calibrate_window",
-           "deskew_sweep"]
+           "deskew_sweep", "predicted_projection_px"]
