@@ -92,6 +92,8 @@ def _cmd_calibrate(a: argparse.Namespace) -> int:
         n = collected_count(st)
         print(f"error: no calibration: {n} observation(s) accepted; last reason: "
               f"{st.get('last_reason') or 'none given'}", file=sys.stderr)
+        if st.get("last_fit_failure"):
+            print(f"  last {st['last_fit_failure']}", file=sys.stderr)
         code = 3
     else:
         eff = st.get("in_effect") or {}

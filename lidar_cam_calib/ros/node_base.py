@@ -164,6 +164,7 @@ class CalibNodeBase(Node):
         self.last_reason = ""
         self.last_file_note = ""
         self.candidate: dict | None = None          # last fit that was not adopted
+        self.last_fit_failure = ""                  # why the last fit was refused (kept while collecting on)
         self.in_effect: CalibrationSet | None = None
         self.in_effect_source = ""                  # 'file' (earlier run) | 'this collection' | ...
         self._in_effect_ours = False                # adopted in the current collection
@@ -547,8 +548,9 @@ class CalibNodeBase(Node):
         try:
             fitted = self.calib.fit()
         except CalibError as e:
-            self.last_reason = f"fit failed: {e}"
+            self.last_reason = self.last_fit_failure = f"fit failed: {e}"
             return self.last_reason
+        self.last_fit_failure = ""
         cal = fitted if isinstance(fitted, CalibrationSet) else CalibrationSet.single(fitted)
         if gen != self._generation:
             return "fit finished after ~/recalibrate: discarded"
@@ -694,6 +696,8 @@ class CalibNodeBase(Node):
         if self._in_effect_ours and eff is not None:
             d["sigma_deg_mm"] = _sigmas(eff).get("", None) if eff.is_single else _sigmas(eff)
         d["candidate"] = self.candidate
+        if self.last_fit_failure:
+            d["last_fit_failure"] = self.last_fit_failure
         if extra:
             d.update(extra)
         try:
@@ -747,6 +751,7 @@ class CalibNodeBase(Node):
             self.last_accepted_s = -math.inf
             self.candidate = None
             self.last_reason = ""
+            self.last_fit_failure = ""
             if self._in_effect_ours:
                 self.in_effect_source, self._in_effect_ours = "earlier collection", False
             self.last_file_note = ""
