@@ -328,6 +328,9 @@ def run_sfm(images: list, camera: CameraModel, masks: list | None = None, ref: i
     if n < 3:
         raise CalibError(f"SfM needs at least 3 frames, got {n}")
     K = camera.K.copy()
+    # OpenCV's RANSAC (essential matrix, PnP) draws from one process-wide generator: seed it so that a
+    # window gives the same result whatever the process computed before
+    cv2.setRNGSeed(0)
     sift = cv2.SIFT_create(nfeatures=cfg.n_features)
     kps, descs, grays = [], [], []
     for i, im in enumerate(images):
