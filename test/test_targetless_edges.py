@@ -3,8 +3,8 @@ boards in front of a wall, seen by a ring LiDAR and rendered by ray casting into
 import numpy as np
 
 from lidar_cam_calib.core.camera import CameraModel
-from lidar_cam_calib.core.geometry import R_BODY_OPTICAL, make_T
-from lidar_cam_calib.targetless.edges import EdgeConfig, lidar_edges, refine_translation
+from lidar_cam_calib.core.geometry import R_BODY_OPTICAL, make_T, pose_errors, so3_exp
+from lidar_cam_calib.targetless.edges import EdgeConfig, EdgeView, lidar_edges, refine_pose, refine_translation
 
 # boards x = const (LiDAR frame: x forward, y left, z up): (x, y0, y1, z0, z1, brightness)
 BOARDS = [(6.0, 2.5, 3.0, -1.5, 2.0, 0.9), (9.0, -4.0, -3.4, -1.5, 2.5, 0.8), (12.0, 3.5, 5.0, -1.0, 1.0, 0.95),
@@ -28,7 +28,10 @@ def _cast(o: np.ndarray, d: np.ndarray, boards=BOARDS) -> tuple[np.ndarray, np.n
     return t, b
 
 
-def _scene(boards=BOARDS):
+def _scene(boards=BOARDS, ahead_m: float = 0.0):
+    """Camera, image, LiDAR points (LiDAR frame) and the true extrinsic, with the car ``ahead_m``
+    forward of the first position."""
+    o = np.array([ahead_m, 0.0, 0.0])
     cam = CameraModel.from_K(480, 320, 300.0, 300.0, 240.0, 160.0)
     R = R_BODY_OPTICAL.T  # camera <- LiDAR
     X = make_T(R, -R @ np.array([0.3, 0.1, -0.2]))  # camera 30 cm ahead, 10 cm left, 20 cm below the LiDAR
@@ -37,14 +40,14 @@ def _scene(boards=BOARDS):
     rays_c = np.stack([(u - 240.0) / 300.0, (v - 160.0) / 300.0, np.ones_like(u)], axis=-1).reshape(-1, 3)
     rays_l = rays_c @ R  # R^T applied to each ray
     rays_l /= np.linalg.norm(rays_l, axis=1, keepdims=True)
-    _, br = _cast(np.array([0.3, 0.1, -0.2]), rays_l, boards)
+    _, br = _cast(o + np.array([0.3, 0.1, -0.2]), rays_l, boards)
     img = np.clip(br.reshape(cam.height, cam.width) * 255, 0, 255).astype(np.uint8)
     # LiDAR: 32 rings, 0.2 deg azimuth steps over the front half
     el = np.radians(np.linspace(-15.0, 15.0, 32))
     az = np.radians(np.arange(-80.0, 80.0, 0.2))
     E, A = np.meshgrid(el, az, indexing="ij")
     d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1).reshape(-1, 3)
-    t, _ = _cast(np.zeros(3), d, boards)
+    t, _ = _cast(o, d, boards)
     ok = np.isfinite(t)
     pts = d[ok] * t[ok, None]
     return cam, img, pts, X
@@ -88,3 +91,43 @@ def test_refine_translation_needs_edges():
     d = X[:3, :3] @ np.array([1.0, 0.0, 0.0])
     assert refine_translation([img], cam, pts, pts, None, np.ones(pts.shape[0], bool), X, [np.eye(4)], d) is None
 
+
+
+def _views(offsets=(0.0, 1.0, 2.0)):
+    out = []
+    for a in offsets:
+        cam, img, pts, X = _scene(ahead_m=a)
+        out.append(EdgeView(img, pts, pts, None, np.ones(pts.shape[0], bool), np.eye(4)))
+    return cam, X, out
+
+
+def test_refine_pose_recovers_yaw_and_lateral_offset_and_says_what_it_cannot_see():
+    """Ring LiDARs see vertical silhouettes: the yaw and the sideways translation are measured, the
+    height is not. The result must recover the first and report the second as uncertain."""
+    cam, X, views = _views()
+    up = X[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    lateral = X[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    Xe = X.copy()
+    dR = so3_exp(np.radians(0.6) * up)
+    Xe[:3, :3] = dR @ X[:3, :3]
+    Xe[:3, 3] = dR @ X[:3, 3] + 0.08 * lateral
+    r = refine_pose(views, cam, Xe, EdgeConfig(min_points=50), up=up, tilt_prior_deg=0.1)
+    assert r is not None and r.n_views == 3
+    rot_deg, _ = pose_errors(r.T, X)
+    assert rot_deg < 0.1, rot_deg
+    assert abs((r.T[:3, 3] - X[:3, 3]) @ lateral) < 0.01
+    assert r.inliers > r.inliers0 and r.cost < r.cost0
+    sd_lateral = np.sqrt(lateral @ r.cov[3:, 3:] @ lateral)
+    sd_up = np.sqrt(up @ r.cov[3:, 3:] @ up)
+    assert sd_up > 1.5 * sd_lateral, (sd_up, sd_lateral)
+
+
+def test_refine_pose_stays_at_the_truth_and_needs_edges():
+    cam, X, views = _views()
+    r = refine_pose(views, cam, X, EdgeConfig(min_points=50), up=X[:3, :3] @ np.array([0.0, 0.0, 1.0]),
+                    tilt_prior_deg=0.1)
+    rot_deg, t_mm = pose_errors(r.T, X)
+    assert rot_deg < 0.05 and abs((r.T[:3, 3] - X[:3, 3]) @ (X[:3, :3] @ np.array([0.0, 1.0, 0.0]))) < 0.005
+    cam, img, pts, X = _scene(boards=[])
+    empty = [EdgeView(img, pts, pts, None, np.ones(pts.shape[0], bool), np.eye(4))] * 2
+    assert refine_pose(empty, cam, X) is None

@@ -35,7 +35,10 @@ compatibility test), ``ours``:
 * translation by a layered bird's-eye cross-correlation (then a
   translation-only point-to-plane ICP with the precise near camera points as
   the source, moving LiDAR points left out);
-* the translation refined on the images (:mod:`.edges`): the LiDAR silhouettes
+* the extrinsic refined on the images (:mod:`.edges` ``refine_pose``, default): every image against
+  the LiDAR edges of its own nearest sweep, six degrees of freedom with ground-plane priors on the
+  tilt and the height, a dispersion-scaled covariance, and gates on the edge fit;
+* (``ours_edge_mode='translation'``, the earlier step) the translation refined on the images: the LiDAR silhouettes
   and intensity steps of the reference sweep, projected into the first images
   of the window (each with its odometry pose), put on the Canny edges (1-D
   search along the driving direction, then a small 3-D step); kept when the
@@ -68,7 +71,7 @@ from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
-from .edges import EdgeConfig, refine_translation
+from .edges import EdgeConfig, EdgeView, refine_pose, refine_translation
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, point_motion,
                       voxel_down)
 from .frame import CameraFrame, LidarSweep
@@ -97,6 +100,9 @@ class TargetlessConfig:
                                                range=(0.1, 50.0))
     max_hausdorff_m: float = cfg_field(0.05, "gate: partial Hausdorff distance of the registered clouds "
                                              "(paper: 5 cm)", range=(0.005, 5.0))
+    ours_max_hausdorff_m: float = cfg_field(
+        0.07, "ours (edge pose refinement): the paper's gate, evaluated through the refined extrinsic (the camera "
+              "cloud is less precise at speed; the edges, not the clouds, fix the result)", range=(0.005, 5.0))
     ours_max_hausdorff_above_ground_m: float = cfg_field(
         0.12, "ours, second gate: the same distance over the registered LiDAR points above the ground only "
               "(the ground alone matches whatever slides along a street)", range=(0.005, 5.0))
@@ -144,7 +150,28 @@ class TargetlessConfig:
                                             range=(1.0, 1000.0))
     ours_edge_refine: bool = cfg_field(True, "ours: refine the translation along the driving direction by "
                                              "putting the LiDAR edges on the image edges")
-    ours_edge_images: int = cfg_field(4, "ours: images of the window the edge refinement uses", range=(1, 30))
+    ours_edge_mode: str = cfg_field("pose", "ours: what the image edges refine: all six degrees of freedom, each "
+                                            "image against its own nearest sweep ('pose'), or the translation "
+                                            "from the reference sweep only ('translation')",
+                                    choices=("pose", "translation"))
+    ours_edge_tilt_prior_deg: float = cfg_field(0.1, "ours, pose mode: 1-sigma prior of the tilt from the two "
+                                                      "ground planes (the edges see pitch and roll weakly: "
+                                                      "LiDAR scan lines give mostly vertical silhouettes)",
+                                                range=(0.0, 10.0))
+    ours_edge_height_prior_m: float = cfg_field(0.03, "ours, pose mode: 1-sigma prior of the height along the up "
+                                                      "axis from the registered ground planes (vertical "
+                                                      "silhouettes do not see it)", range=(0.0, 10.0))
+    ours_min_edge_inliers: float = cfg_field(0.5, "ours, pose mode, gate: fewest LiDAR edge points within 1.5 px "
+                                                  "of an image edge after the refinement (a fraction)",
+                                             range=(0.0, 1.0))
+    ours_min_edge_views: int = cfg_field(4, "ours, pose mode, gate: fewest images whose LiDAR edges are seen",
+                                         range=(2, 30))
+    ours_edge_floor_deg: float = cfg_field(0.07, "ours, pose mode: 1-sigma per axis added to the rotation for "
+                                                 "what all images share (LiDAR edge placement, camera model)",
+                                           range=(0.0, 10.0))
+    ours_edge_floor_m: float = cfg_field(0.015, "ours, pose mode: the same for the translation",
+                                         range=(0.0, 1.0))
+    ours_edge_images: int = cfg_field(8, "ours: images of the window the edge refinement uses", range=(1, 30))
     ours_edge_full: bool = cfg_field(True, "ours: after the 1-D search along the driving direction, a small 3-D "
                                            "translation refinement")
     ours_edge_min_t: float = cfg_field(3.0, "ours: the edge refinement is kept when it lowers the edge score "
@@ -176,6 +203,10 @@ class WindowDiagnostics:
     T_oba: np.ndarray | None = None
     T_icp: np.ndarray | None = None
     T_final: np.ndarray | None = None
+    T_pre_edge: np.ndarray | None = None
+    edge_pose: object = None
+    edge_views: list = dataclasses.field(default_factory=list)
+    up_cam: np.ndarray | None = None
     timings_s: dict = dataclasses.field(default_factory=dict)
     metrics: dict = dataclasses.field(default_factory=dict)
 
@@ -552,7 +583,57 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     # driving direction in the camera frame (LiDAR x motion mapped into the camera)
     vdir = T_final[:3, :3] @ (link.T[:3, 3] / max(np.linalg.norm(link.T[:3, 3]), 1e-9))
     edge = None
-    if ours and cfg.ours_edge_refine:
+    diag.T_pre_edge = T_final
+    if ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "pose":
+        t5 = time.perf_counter()
+        views = []
+        static_cache: dict = {}
+        for k in range(min(cfg.ours_edge_images, len(images))):
+            jk = int(np.argmin(np.abs(stamps_u - t_img[k])))
+            sw = sweeps[use[jk]]
+            if jk not in static_cache:
+                lk = links[jk - 1] if jk > 0 else links[0]
+                pk = deskew_sweep(sw, lk.T, cfg) if cfg.deskew else sw.points
+                oth, T_oth = [], []
+                for dj in (-cfg.dynamic_sweep_gap, cfg.dynamic_sweep_gap):
+                    j = jk + dj
+                    if 0 <= j < len(use):
+                        oth.append(sweeps[use[j]].points)
+                        T_oth.append(inv_T(poses[jk]) @ poses[j])
+                st = point_motion(sw.points, oth, T_oth) <= cfg.dynamic_dist_m if oth \
+                    else np.ones(sw.points.shape[0], bool)
+                static_cache[jk] = (pk, st)
+            pk, st = static_cache[jk]
+            views.append(EdgeView(ims[k], sw.points, pk, sw.intensity, st, inv_T(poses[jk]) @ P_img[k]))
+        up_cam = T_final[:3, :3] @ Ll[2, :3]  # the LiDAR ground normal in the camera frame
+        diag.up_cam = up_cam
+        pe = refine_pose(views, cam, T_final, cfg.edges, direction=vdir, up=up_cam,
+                         tilt_prior_deg=cfg.ours_edge_tilt_prior_deg, height_prior_m=cfg.ours_edge_height_prior_m)
+        diag.edge_pose = pe
+        diag.edge_views = views
+        tm["edges"] = time.perf_counter() - t5
+        if pe is not None:
+            metrics.update({"edge_points": pe.n_points, "edge_views": pe.n_views, "edge_cost0_px": pe.cost0,
+                            "edge_cost_px": pe.cost, "edge_inliers0": pe.inliers0, "edge_inliers": pe.inliers,
+                            "edge_dispersion": pe.dispersion,
+                            "edge_delta_rot_deg": float(np.degrees(np.linalg.norm(pe.xi[:3]))),
+                            "edge_delta_norm_m": float(np.linalg.norm(pe.xi[3:]))})
+            T_final = pe.T
+            # the registered clouds' distances again, now through the refined extrinsic
+            metrics["hausdorff_before_edges_m"] = metrics.get("hausdorff_m", float("nan"))
+            metrics["hausdorff_above_ground_before_edges_m"] = metrics.get("hausdorff_above_ground_m", float("nan"))
+            T_fs = T_final @ inv_T(T_sweep_img)
+            regl = transform_points(Ls @ T_fs, lid[np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m])
+            d, nn = tree.query(regl, k=1, distance_upper_bound=0.5)
+            okf = np.isfinite(d)
+            if okf.sum() >= 50:
+                dpl = np.abs(np.einsum("ij,ij->i", regl[okf] - cs[nn[okf]], nrm[nn[okf]]))
+                haus = float(np.quantile(dpl, cfg.hausdorff_quantile))
+                ab = regl[okf][:, 2] > 0.3
+                metrics["hausdorff_m"] = haus
+                metrics["hausdorff_above_ground_m"] = float(np.quantile(dpl[ab], cfg.hausdorff_quantile)) \
+                    if ab.sum() >= 20 else float("nan")
+    if ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "translation":
         t5 = time.perf_counter()
         T_si = [inv_T(poses[jr]) @ P for P in P_img[:cfg.ours_edge_images]]
         edge = refine_translation(ims[:cfg.ours_edge_images], cam, ref_sweep.points, lid, ref_sweep.intensity,
@@ -579,7 +660,16 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     # -- covariance: ICP information (levelled camera-cloud space) mapped to the camera frame,
     # inflated for correlated residuals, plus the scale and the clock priors
     cov = np.zeros((6, 6))
-    if icp is not None:
+    pose_edge = ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "pose"
+    pe = diag.edge_pose if pose_edge else None
+    if pe is not None:
+        # the edge fit's own covariance (dispersion-scaled, with the tilt prior), a floor for what the
+        # images share (the LiDAR edge placement, the camera model), and the clock along the drive
+        cov = pe.cov.copy()
+        cov[:3, :3] += np.eye(3) * math.radians(cfg.ours_edge_floor_deg) ** 2
+        cov[3:, 3:] += np.eye(3) * cfg.ours_edge_floor_m ** 2 + \
+            np.outer(vdir, vdir) * (speed * cfg.time_offset_sigma_s) ** 2
+    elif icp is not None:
         sig2 = icp.residual_sigma_m ** 2
         try:
             if ours:
@@ -603,12 +693,13 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     else:
         cov[:3, :3] += np.eye(3) * math.radians(cfg.align.yaw_step_deg) ** 2
         cov[3:, 3:] += np.eye(3) * (cfg.align.trans_step_m / 2) ** 2
-    # scale: a relative error e moves the registered translation by about e * |t|
-    tcam = T_final[:3, 3]
-    cov[3:, 3:] += np.outer(tcam, tcam) * scale_rel ** 2 + np.eye(3) * (scale_rel * 0.5) ** 2 * 0.01
-    # clock: translation along the driving direction
-    cov[3:, 3:] += np.outer(vdir, vdir) * (speed * cfg.time_offset_sigma_s) ** 2
-    if ours:
+    if pe is None:
+        # scale: a relative error e moves the registered translation by about e * |t|
+        tcam = T_final[:3, 3]
+        cov[3:, 3:] += np.outer(tcam, tcam) * scale_rel ** 2 + np.eye(3) * (scale_rel * 0.5) ** 2 * 0.01
+        # clock: translation along the driving direction
+        cov[3:, 3:] += np.outer(vdir, vdir) * (speed * cfg.time_offset_sigma_s) ** 2
+    if ours and pe is None:
         # the camera cloud's depth ahead (what fixes the translation along a street) carries a bias
         # correlated through the SfM poses that the ICP information does not see
         # (after the edge refinement: its per-image spread plus a floor for what the spread does not see, the
@@ -621,10 +712,12 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     pred = predicted_projection_px(cam, T_final, cov, ref_sweep.points)
     metrics["predicted_x_px"], metrics["predicted_y_px"] = pred
     diag.metrics = metrics
-    if haus > cfg.max_hausdorff_m and solver != "oba":
-        raise CalibError(f"gate failed: Hausdorff distance {haus * 100:.1f} cm between the registered clouds > "
-                         f"{cfg.max_hausdorff_m * 100:.1f} cm; calibration rejected")
+    haus = metrics["hausdorff_m"]
     ha = metrics["hausdorff_above_ground_m"]
+    max_h = cfg.ours_max_hausdorff_m if pe is not None else cfg.max_hausdorff_m
+    if haus > max_h and solver != "oba":
+        raise CalibError(f"gate failed: Hausdorff distance {haus * 100:.1f} cm between the registered clouds > "
+                         f"{max_h * 100:.1f} cm; calibration rejected")
     if ours and metrics.get("bev_peak_ratio", np.inf) < cfg.ours_min_bev_peak_ratio:
         raise CalibError(f"gate failed: the translation search has no distinct peak (best / best elsewhere "
                          f"{metrics['bev_peak_ratio']:.2f} < {cfg.ours_min_bev_peak_ratio:.2f}): the street looks "
@@ -633,7 +726,18 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         raise CalibError(f"gate failed: Hausdorff distance above the ground {ha * 100:.1f} cm > "
                          f"{cfg.ours_max_hausdorff_above_ground_m * 100:.1f} cm (the poles, trunks and facades "
                          "do not meet; the registration slid along the street); calibration rejected")
-    if ours and cfg.ours_edge_refine and cfg.ours_require_edge and edge is None:
+    if ours and pose_edge and cfg.ours_require_edge and pe is None:
+        raise CalibError("gate failed: too few LiDAR edges (silhouettes of poles, trunks, cars; road paint) are "
+                         f"seen in the images (at least {cfg.edges.min_points} over 2 or more images needed) to "
+                         "refine the extrinsic on them; calibration rejected (drive past poles, trunks, parked "
+                         "cars and road paint close to the camera)")
+    if ours and pe is not None and (pe.n_views < cfg.ours_min_edge_views or pe.inliers < cfg.ours_min_edge_inliers):
+        raise CalibError(f"gate failed: the LiDAR edges do not meet the image edges well enough "
+                         f"({pe.inliers * 100:.0f} % within 1.5 px, >= {cfg.ours_min_edge_inliers * 100:.0f} % "
+                         f"needed, over {pe.n_views} images, >= {cfg.ours_min_edge_views} needed); "
+                         "calibration rejected (drive past poles, trunks, parked cars and road paint close to "
+                         "the camera)")
+    if ours and not pose_edge and cfg.ours_edge_refine and cfg.ours_require_edge and edge is None:
         why = "no usable edges" if "edge_t" not in metrics else (
             f"gain t = {metrics['edge_t']:.1f} (>= {cfg.ours_edge_min_t:.1f} needed), per-image spread "
             f"{metrics['edge_sigma_m'] * 100:.1f} cm (<= {cfg.ours_edge_max_spread_m * 100:.1f} cm needed)")

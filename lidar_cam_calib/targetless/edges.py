@@ -51,6 +51,10 @@ class EdgeConfig:
     fine_step_m: float = cfg_field(0.004, "fine 1-D search step", range=(0.0005, 0.5))
     max_3d_m: float = cfg_field(0.1, "the 3-D refinement stays within this of the 1-D optimum", range=(0.0, 2.0))
     blur_sigma_px: float = cfg_field(1.0, "Gaussian blur before Canny", range=(0.0, 10.0))
+    pose_coarse_blur_px: float = cfg_field(2.0, "6-DoF refinement: blur of the coarse distance field",
+                                           range=(0.0, 20.0))
+    pose_fine_blur_px: float = cfg_field(1.0, "6-DoF refinement: blur of the fine distance field", range=(0.0, 20.0))
+    pose_cauchy_px: float = cfg_field(1.5, "6-DoF refinement: Cauchy scale of the fine stage", range=(0.1, 20.0))
     min_points: int = cfg_field(150, "fewest visible LiDAR edge points (all images)", range=(10, 100000))
 
 
@@ -273,4 +277,228 @@ def _refine3(costs, delta: np.ndarray, cfg: EdgeConfig) -> np.ndarray:
     return x
 
 
-__all__ = ["EdgeConfig", "EdgeResult", "image_distance", "lidar_edges", "refine_translation"]
+@dataclasses.dataclass
+class EdgeView:
+    """One image of the window with the LiDAR sweep nearest its exposure."""
+    image: np.ndarray
+    raw: np.ndarray                 # (N,3) the sweep as measured
+    pts: np.ndarray                 # (N,3) the same points de-skewed to the sweep stamp
+    intensity: np.ndarray | None
+    static: np.ndarray              # (N,) bool: points that did not move between sweeps
+    T_sweep_img: np.ndarray         # LiDAR at the sweep stamp <- LiDAR at this exposure
+
+
+@dataclasses.dataclass
+class PoseEdgeResult:
+    T: np.ndarray                   # refined extrinsic (camera <- LiDAR at the exposure)
+    xi: np.ndarray                  # (6,) left perturbation (rotation vector, translation) from the start
+    cov: np.ndarray                 # (6,6) its covariance (camera frame), dispersion-scaled
+    cost0: float                    # mean truncated edge distance at the start (px)
+    cost: float                     # ... at the optimum
+    inliers0: float                 # fraction of edge points within 1.5 px of an image edge at the start
+    inliers: float                  # ... at the optimum
+    n_points: int
+    n_views: int
+    dispersion: float               # scatter of the per-image optima over what their information predicts
+    per_view: np.ndarray            # (K,6) linearised per-image optima relative to the joint one
+
+
+def _field(image: np.ndarray, cfg: EdgeConfig, trunc: float, blur: float):
+    """Truncated, smoothed edge-distance field and its gradient (px per px)."""
+    import cv2
+    f = np.minimum(image_distance(image, cfg), trunc).astype(np.float32)
+    if blur > 0:
+        f = cv2.GaussianBlur(f, (0, 0), blur)
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    return f, gx, gy
+
+
+def _proj_jac(K: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(N,2,6) d(pixel)/d(left perturbation: rotation vector, translation) of camera points ``q``
+    (pinhole part; distortion changes it by far less than the fit needs)."""
+    x, y, z = q[:, 0], q[:, 1], q[:, 2]
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    Jq = np.zeros((q.shape[0], 2, 3))
+    Jq[:, 0, 0] = fx / z
+    Jq[:, 0, 2] = -fx * x / z ** 2
+    Jq[:, 1, 1] = fy / z
+    Jq[:, 1, 2] = -fy * y / z ** 2
+    S = np.zeros((q.shape[0], 3, 3))  # -[q]x
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = z, -y, x
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = -z, y, -x
+    return np.concatenate([Jq @ S, Jq], axis=2)
+
+
+def _stats(rj: list, c: float):
+    """Per-image information and gradient of the Cauchy-weighted fit, and its residual variance."""
+    Hs, gs = [], []
+    for r, J in rj:
+        w = 1.0 / (1.0 + (r / c) ** 2)
+        Hs.append(J.T @ (J * w[:, None]))
+        gs.append(J.T @ (w * r))
+    rr = np.concatenate([r for r, _ in rj])
+    ww = 1.0 / (1.0 + (rr / c) ** 2)
+    naive = float(np.sum(ww * rr ** 2) / max(np.sum(ww) - Hs[0].shape[0], 1.0))
+    return Hs, gs, naive
+
+
+def _scale(Hs: list, gs: list, naive: float, m: int) -> float:
+    """Residual variance that makes the images' linearised optima about the joint one scatter as their
+    own information predicts (each image's step, damped where it alone sees nothing, and its squared
+    Mahalanobis length under that image's information average m * (K-1) / K); never below the naive
+    residual variance."""
+    m2 = []
+    for Hk, gk in zip(Hs, gs):
+        Ak = Hk + 1e-6 * np.trace(Hk) * np.eye(m)
+        dk = -np.linalg.solve(Ak, gk)
+        m2.append(float(dk @ Hk @ dk))
+    k = len(Hs)
+    return max(float(np.sum(m2) / (m * max(k - 1, 1))), naive)
+
+
+def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | None = None,
+                direction: np.ndarray | None = None, kinds=None, up: np.ndarray | None = None,
+                tilt_prior_deg: float = 0.0, height_prior_m: float = 0.0) -> PoseEdgeResult | None:
+    """All six degrees of freedom of the extrinsic ``X`` (camera <- LiDAR at the exposure) from the
+    LiDAR edges of each view's own sweep against that view's image edges.
+
+    Each view brings its nearest sweep, so neither the odometry's drift nor one sweep's edge errors
+    are shared by all images. Steps: an optional 1-D search along ``direction`` (the driving
+    direction, which the clouds leave least certain), then Levenberg-Marquardt on the smoothed,
+    truncated distance fields (coarse, then fine) with Cauchy weights. The covariance is the inverse of
+    the joint information scaled by the measured dispersion: each image's linearised optimum about the
+    joint one, weighed by that image's own information, must scatter as its information predicts; the
+    scale that makes it so (neighbouring edge points share their errors) multiplies the joint inverse.
+    None when too few edges are seen."""
+    from ..core.geometry import so3_exp
+    cfg = cfg or EdgeConfig()
+    K = cam.K
+    V = []
+    for v in views:
+        E, kind = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static)
+        if kinds is not None:
+            E = E[np.isin(kind, kinds)]
+        if E.shape[0] < cfg.min_points // 3:
+            continue
+        Tk = X @ inv_T(v.T_sweep_img)      # camera at this exposure <- sweep
+        vis = _visible(cam, Tk, E, v.pts[v.static][::2])
+        if vis.sum() < cfg.min_points // 3:
+            continue
+        # the edge points in the camera frame at X (perturbed on the left from here on)
+        V.append({"q": transform_points(Tk, E[vis]), "image": v.image})
+    n = sum(v["q"].shape[0] for v in V)
+    if len(V) < 2 or n < cfg.min_points:
+        return None
+
+    if up is None or tilt_prior_deg > 0:
+        B = np.eye(6)
+    else:  # yaw about the up axis (camera frame) and the translation: the tilt stays the caller's
+        u = np.asarray(up, float) / max(np.linalg.norm(up), 1e-12)
+        B = np.zeros((6, 4))
+        B[:3, 0] = u
+        B[3:, 1:] = np.eye(3)
+    m = B.shape[1]
+    # optional prior on the tilt (the two rotations about the horizontal axes, from the ground planes);
+    # its weight is in units of the edge residual variance, set after a first pass without it
+    Pt = np.zeros((6, 6))
+    if up is not None and tilt_prior_deg > 0 and m == 6:
+        u = np.asarray(up, float) / max(np.linalg.norm(up), 1e-12)
+        Pt[:3, :3] = (np.eye(3) - np.outer(u, u)) / np.radians(tilt_prior_deg) ** 2
+        if height_prior_m > 0:  # the height along the up axis (silhouettes are vertical: they do not see it)
+            Pt[3:, 3:] = np.outer(u, u) / height_prior_m ** 2
+    P = np.zeros((6, 6))
+
+    def apply(xi, q):
+        R = so3_exp(xi[:3])
+        return q @ R.T + xi[3:]
+
+    def residuals(xi, fields, with_jac=False):
+        out = []
+        for v, (f, gx, gy) in zip(V, fields):
+            q = apply(xi, v["q"])
+            uv, _ = cam.project(q)
+            r = _sample(f, uv)
+            if with_jac:
+                g = np.stack([_sample(gx, uv), _sample(gy, uv)], axis=1)
+                J = np.einsum("ni,nij->nj", g, _proj_jac(K, q)) @ B
+                out.append((r, J))
+            else:
+                out.append(r)
+        return out
+
+    def lm(xi, fields, c, iters=25):
+        lam = 1e-3
+        for _ in range(iters):
+            rj = residuals(xi, fields, True)
+            r = np.concatenate([a for a, _ in rj])
+            J = np.concatenate([b for _, b in rj])
+            w = 1.0 / (1.0 + (r / c) ** 2)
+            Pm = B.T @ P @ B
+            H = J.T @ (J * w[:, None]) + Pm
+            g = J.T @ (w * r) + B.T @ (P @ xi)
+            f0 = float(0.5 * c * c * np.sum(np.log1p((r / c) ** 2)) + 0.5 * xi @ P @ xi)
+            improved = False
+            for _ in range(8):
+                A = H + lam * np.diag(np.diag(H) + 1e-9)
+                try:
+                    step = -np.linalg.solve(A, g)
+                except np.linalg.LinAlgError:
+                    lam *= 10
+                    continue
+                xn = xi + B @ step
+                rn = np.concatenate(residuals(xn, fields))
+                if float(0.5 * c * c * np.sum(np.log1p((rn / c) ** 2)) + 0.5 * xn @ P @ xn) < f0:
+                    xi, lam, improved = xn, max(lam / 3, 1e-6), True
+                    break
+                lam *= 10
+            st6 = B @ step
+            if not improved or np.linalg.norm(st6[:3]) < 1e-6 and np.linalg.norm(st6[3:]) < 1e-5:
+                break
+        return xi
+
+    xi = np.zeros(6)
+    coarse = [_field(v["image"], cfg, cfg.coarse_truncate_px, cfg.pose_coarse_blur_px) for v in V]
+    if direction is not None:
+        d = np.asarray(direction, float)
+        d = d / max(np.linalg.norm(d), 1e-12)
+        s = np.arange(-cfg.search_m, cfg.search_m + 0.5 * cfg.coarse_step_m, cfg.coarse_step_m)
+        f = [float(np.concatenate(residuals(np.concatenate([np.zeros(3), si * d]), coarse)).mean()) for si in s]
+        i = int(np.argmin(f))
+        if 0 < i < len(s) - 1:
+            xi[3:] = s[i] * d
+    xi = lm(xi, coarse, 3.0)
+    fine = [_field(v["image"], cfg, cfg.truncate_px, cfg.pose_fine_blur_px) for v in V]
+    c = cfg.pose_cauchy_px
+    xi = lm(xi, fine, c)
+    if np.any(Pt):
+        # the prior's weight: the residual variance of this fit (dispersion-scaled below)
+        H_, g_, var_ = _stats(residuals(xi, fine, True), c)
+        P = Pt * _scale(H_, g_, var_, m)
+        xi = lm(xi, fine, c)
+    # statistics at the optimum
+    raw_f = [(np.minimum(image_distance(v["image"], cfg), cfg.truncate_px), None, None) for v in V]
+    r0 = np.concatenate(residuals(np.zeros(6), raw_f))
+    r1 = np.concatenate(residuals(xi, raw_f))
+    Hs, gs, naive = _stats(residuals(xi, fine, True), c)
+    scale = _scale(Hs, gs, naive, m)
+    H = sum(Hs) + B.T @ P @ B
+    try:
+        Hinv = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    per = []
+    for Hk, gk in zip(Hs, gs):
+        Ak = Hk + 1e-6 * np.trace(Hk) * np.eye(m)
+        per.append(B @ -np.linalg.solve(Ak, gk))
+    k = len(V)
+    T = X.copy()
+    T[:3, :3] = so3_exp(xi[:3]) @ X[:3, :3]
+    T[:3, 3] = so3_exp(xi[:3]) @ X[:3, 3] + xi[3:]
+    return PoseEdgeResult(T=T, xi=xi, cov=B @ Hinv @ B.T * scale, cost0=float(r0.mean()), cost=float(r1.mean()),
+                          inliers0=float(np.mean(r0 < 1.5)), inliers=float(np.mean(r1 < 1.5)), n_points=n,
+                          n_views=k, dispersion=scale / max(naive, 1e-12), per_view=np.array(per))
+
+
+__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "image_distance", "lidar_edges",
+           "refine_pose", "refine_translation"]
