@@ -71,7 +71,7 @@ from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
-from .edges import EdgeConfig, EdgeView, refine_pose, refine_translation
+from .edges import EdgeConfig, EdgeView, proj_jacobian, refine_pose, refine_translation
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, point_motion,
                       voxel_down)
 from .frame import CameraFrame, LidarSweep
@@ -767,18 +767,7 @@ def predicted_projection_px(cam, T: np.ndarray, cov: np.ndarray, points: np.ndar
         return float("inf"), float("inf")
     if q.shape[0] > max_points:
         q = q[np.linspace(0, q.shape[0] - 1, max_points).astype(int)]
-    x, y, zz = q[:, 0], q[:, 1], q[:, 2]
-    fx, fy = float(cam.K[0, 0]), float(cam.K[1, 1])
-    # d(pixel)/d(point) times d(point)/d(rotation vector, translation) = [-[q]x | I]
-    Jq = np.zeros((q.shape[0], 2, 3))
-    Jq[:, 0, 0] = fx / zz
-    Jq[:, 0, 2] = -fx * x / zz ** 2
-    Jq[:, 1, 1] = fy / zz
-    Jq[:, 1, 2] = -fy * y / zz ** 2
-    S = np.zeros((q.shape[0], 3, 3))  # -[q]x
-    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = zz, -y, x
-    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = -zz, y, -x
-    J = np.concatenate([Jq @ S, Jq], axis=2)
+    J = proj_jacobian(cam.K, q)  # d(pixel) / d(rotation vector, translation), left perturbation
     var = np.einsum("nij,jk,nik->ni", J, cov, J)
     sd = np.sqrt(np.maximum(var, 0.0)) * math.sqrt(2.0 / math.pi)  # E|e| of a zero-mean normal
     return float(np.mean(sd[:, 0])), float(np.mean(sd[:, 1]))

@@ -314,7 +314,7 @@ def _field(image: np.ndarray, cfg: EdgeConfig, trunc: float, blur: float):
     return f, gx, gy
 
 
-def _proj_jac(K: np.ndarray, q: np.ndarray) -> np.ndarray:
+def proj_jacobian(K: np.ndarray, q: np.ndarray) -> np.ndarray:
     """(N,2,6) d(pixel)/d(left perturbation: rotation vector, translation) of camera points ``q``
     (pinhole part; distortion changes it by far less than the fit needs)."""
     x, y, z = q[:, 0], q[:, 1], q[:, 2]
@@ -421,7 +421,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
             r = _sample(f, uv)
             if with_jac:
                 g = np.stack([_sample(gx, uv), _sample(gy, uv)], axis=1)
-                J = np.einsum("ni,nij->nj", g, _proj_jac(K, q)) @ B
+                J = np.einsum("ni,nij->nj", g, proj_jacobian(K, q)) @ B
                 out.append((r, J))
             else:
                 out.append(r)
@@ -500,5 +500,5 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
                           n_views=k, dispersion=scale / max(naive, 1e-12), per_view=np.array(per))
 
 
-__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "image_distance", "lidar_edges",
+__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "image_distance", "lidar_edges", "proj_jacobian",
            "refine_pose", "refine_translation"]
