@@ -370,7 +370,12 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     the joint information scaled by the measured dispersion: each image's linearised optimum about the
     joint one, weighed by that image's own information, must scatter as its information predicts; the
     scale that makes it so (neighbouring edge points share their errors) multiplies the joint inverse.
-    None when too few edges are seen."""
+    None when too few edges are seen.
+
+    ``up`` (camera frame): with ``tilt_prior_deg`` > 0, priors on the two rotations about the horizontal
+    axes (and with ``height_prior_m`` > 0 on the translation along ``up``) around the start; with
+    ``tilt_prior_deg`` = 0, only the yaw about ``up`` and the translation are fitted (4 DoF).
+    ``kinds``: edge kinds to use (0 silhouettes, 1 paint; None both)."""
     from ..core.geometry import so3_exp
     cfg = cfg or EdgeConfig()
     K = cam.K
