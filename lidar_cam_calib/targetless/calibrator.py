@@ -205,8 +205,6 @@ class WindowDiagnostics:
     T_final: np.ndarray | None = None
     T_pre_edge: np.ndarray | None = None
     edge_pose: object = None
-    edge_views: list = dataclasses.field(default_factory=list)
-    up_cam: np.ndarray | None = None
     timings_s: dict = dataclasses.field(default_factory=dict)
     metrics: dict = dataclasses.field(default_factory=dict)
 
@@ -337,6 +335,34 @@ class TargetlessCalibrator:
                    "implemented"])
 
 
+def _neighbours(sweeps: list, use: list, poses: list, j: int, gap: int) -> tuple[list, list]:
+    """The sweeps ``gap`` before and after sweep ``j`` of the window (raw points) and their poses
+    relative to it (odometry), for the motion-consistency test."""
+    others, T_others = [], []
+    for dj in (-gap, gap):
+        i = j + dj
+        if 0 <= i < len(use):
+            others.append(sweeps[use[i]].points)
+            T_others.append(inv_T(poses[j]) @ poses[i])
+    return others, T_others
+
+
+def _registered_distances(regl: np.ndarray, tree, cs: np.ndarray, nrm: np.ndarray, quantile: float):
+    """Point-to-plane distances of registered LiDAR points (levelled camera-cloud frame) to the camera
+    cloud ``cs``: the overlap mask and, with at least 50 points on the cloud, the partial Hausdorff
+    distances overall and above the ground (None otherwise)."""
+    d, nn = tree.query(regl, k=1, distance_upper_bound=0.5)
+    ok = np.isfinite(d)
+    if ok.sum() < 50:
+        return ok, None
+    dist = np.abs(np.einsum("ij,ij->i", regl[ok] - cs[nn[ok]], nrm[nn[ok]]))
+    above = regl[ok][:, 2] > 0.3
+    return ok, {"hausdorff_m": float(np.quantile(dist, quantile)),
+                "hausdorff_above_ground_m": float(np.quantile(dist[above], quantile)) if above.sum() >= 20
+                else float("nan"),
+                "overlap_above_ground_points": int(above.sum()), "overlap_points": int(ok.sum())}
+
+
 def _level(points: np.ndarray, up: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     n, d = ground_plane(points, rng, up)
     L = make_T(level_rotation(n), np.zeros(3))
@@ -401,19 +427,18 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     t2 = time.perf_counter()
     jr = int(np.argmin(np.abs(stamps_u - t_img[0])))
     ref_sweep = sweeps[use[jr]]
-    link = links[jr - 1] if jr > 0 else links[0]
+    def link_of(j):  # the odometry link that ends at sweep j (the first one for sweep 0)
+        return links[j - 1] if j > 0 else links[0]
+    link = link_of(jr)
     lid = deskew_sweep(ref_sweep, link.T, cfg) if cfg.deskew else ref_sweep.points
     # LiDAR pose at the reference exposure, relative to the reference sweep stamp
     T_sweep_img = inv_T(poses[jr]) @ P_img[0]
     ja = max(jr, 1)
     speed = float(np.linalg.norm(link.T[:3, 3]) / max(stamps_u[ja] - stamps_u[ja - 1], 1e-3))
     # -- dynamic objects (motion consistency with sweeps gap apart)
-    others, T_others = [], []
-    for dj in (-cfg.dynamic_sweep_gap, cfg.dynamic_sweep_gap):
-        j = jr + dj
-        if 0 <= j < len(use):
-            others.append(sweeps[use[j]].points)
-            T_others.append(inv_T(poses[jr]) @ poses[j])
+    others, T_others = _neighbours(sweeps, use, poses, jr, cfg.dynamic_sweep_gap)
+    # per point: how far it moved between the compensated sweeps (objects and the edge views use it)
+    motion = point_motion(ref_sweep.points, others, T_others) if others else np.zeros(lid.shape[0])
     # -- camera cloud: only points whose triangulation is precise (forward motion: far points ahead have
     # tiny parallax and metre-level depth errors); sigma from the SfM's own re-projection error
     cloud_all = np.concatenate([dense, sfm.points])
@@ -439,7 +464,6 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     B = extract_objects(cl, ocfg)
     n_dyn = 0
     if others and solver != "oba":
-        motion = point_motion(ref_sweep.points, others, T_others)
         dyn = dynamic_objects(B.point_labels, motion, len(B), cfg.dynamic_dist_m)
         n_dyn = int(dyn.sum())
         B = B.subset(~dyn)
@@ -454,7 +478,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     if ours and others:
         # ours: every point that moved between the compensated sweeps leaves the ICP too (not only whole
         # objects): the camera saw the moving cars elsewhere
-        static_pts = point_motion(ref_sweep.points, others, T_others) <= cfg.dynamic_dist_m
+        static_pts = motion <= cfg.dynamic_dist_m
         near &= static_pts
     src = voxel_down(cl[near], 0.1)
     tree = cKDTree(cs)
@@ -541,21 +565,12 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     diag.T_icp = T_chain @ T_sweep_img
     tm["align"] = time.perf_counter() - t3
     # -- gates: partial Hausdorff distance on the registered overlap
-    reg = chain(lid[np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m])
-    regl = transform_points(Ls, reg)
-    d, nn = tree.query(regl, k=1, distance_upper_bound=0.5)
-    ok = np.isfinite(d)
-    if ok.sum() < 50:
+    in_r = np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m
+    ok, dist_m = _registered_distances(transform_points(Ls, chain(lid[in_r])), tree, cs, nrm, cfg.hausdorff_quantile)
+    if dist_m is None:
         raise CalibError(f"gate failed: only {int(ok.sum())} LiDAR points lie on the camera cloud after "
                          "registration; calibration rejected")
-    dist_pl = np.abs(np.einsum("ij,ij->i", regl[ok] - cs[nn[ok]], nrm[nn[ok]]))
-    haus = float(np.quantile(dist_pl, cfg.hausdorff_quantile))
-    above = regl[ok][:, 2] > 0.3
-    metrics["hausdorff_above_ground_m"] = float(np.quantile(dist_pl[above], cfg.hausdorff_quantile)) \
-        if above.sum() >= 20 else float("nan")
-    metrics["overlap_above_ground_points"] = int(above.sum())
-    metrics["hausdorff_m"] = haus
-    metrics["overlap_points"] = int(ok.sum())
+    metrics.update(dist_m)
     # -- final PnP (the paper: object centroids through the chain; ours: every overlapping point)
     t4 = time.perf_counter()
     if solver in ("paper", "ours"):
@@ -563,7 +578,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             pl = inv_T(Ll) @ np.concatenate([B.centroids.T, np.ones((1, len(B)))])
             pts = pl[:3].T
         else:
-            pts = lid[np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m][ok]
+            pts = lid[in_r][ok]
             if pts.shape[0] > 3000:
                 pts = pts[rng.choice(pts.shape[0], 3000, replace=False)]
         qc = chain(pts)
@@ -582,35 +597,27 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     T_final = T_final_sweep @ T_sweep_img
     # driving direction in the camera frame (LiDAR x motion mapped into the camera)
     vdir = T_final[:3, :3] @ (link.T[:3, 3] / max(np.linalg.norm(link.T[:3, 3]), 1e-9))
-    edge = None
+    edge = pe = None
     diag.T_pre_edge = T_final
     if ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "pose":
         t5 = time.perf_counter()
         views = []
-        static_cache: dict = {}
+        static_cache: dict = {jr: (lid, motion <= cfg.dynamic_dist_m)}  # sweep -> (de-skewed, static)
         for k in range(min(cfg.ours_edge_images, len(images))):
             jk = int(np.argmin(np.abs(stamps_u - t_img[k])))
             sw = sweeps[use[jk]]
             if jk not in static_cache:
-                lk = links[jk - 1] if jk > 0 else links[0]
-                pk = deskew_sweep(sw, lk.T, cfg) if cfg.deskew else sw.points
-                oth, T_oth = [], []
-                for dj in (-cfg.dynamic_sweep_gap, cfg.dynamic_sweep_gap):
-                    j = jk + dj
-                    if 0 <= j < len(use):
-                        oth.append(sweeps[use[j]].points)
-                        T_oth.append(inv_T(poses[jk]) @ poses[j])
+                pk = deskew_sweep(sw, link_of(jk).T, cfg) if cfg.deskew else sw.points
+                oth, T_oth = _neighbours(sweeps, use, poses, jk, cfg.dynamic_sweep_gap)
                 st = point_motion(sw.points, oth, T_oth) <= cfg.dynamic_dist_m if oth \
                     else np.ones(sw.points.shape[0], bool)
                 static_cache[jk] = (pk, st)
             pk, st = static_cache[jk]
             views.append(EdgeView(ims[k], sw.points, pk, sw.intensity, st, inv_T(poses[jk]) @ P_img[k]))
         up_cam = T_final[:3, :3] @ Ll[2, :3]  # the LiDAR ground normal in the camera frame
-        diag.up_cam = up_cam
         pe = refine_pose(views, cam, T_final, cfg.edges, direction=vdir, up=up_cam,
                          tilt_prior_deg=cfg.ours_edge_tilt_prior_deg, height_prior_m=cfg.ours_edge_height_prior_m)
         diag.edge_pose = pe
-        diag.edge_views = views
         tm["edges"] = time.perf_counter() - t5
         if pe is not None:
             metrics.update({"edge_points": pe.n_points, "edge_views": pe.n_views, "edge_cost0_px": pe.cost0,
@@ -622,17 +629,11 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             # the registered clouds' distances again, now through the refined extrinsic
             metrics["hausdorff_before_edges_m"] = metrics.get("hausdorff_m", float("nan"))
             metrics["hausdorff_above_ground_before_edges_m"] = metrics.get("hausdorff_above_ground_m", float("nan"))
-            T_fs = T_final @ inv_T(T_sweep_img)
-            regl = transform_points(Ls @ T_fs, lid[np.linalg.norm(cl[:, :2], axis=1) < cfg.objects.radius_m])
-            d, nn = tree.query(regl, k=1, distance_upper_bound=0.5)
-            okf = np.isfinite(d)
-            if okf.sum() >= 50:
-                dpl = np.abs(np.einsum("ij,ij->i", regl[okf] - cs[nn[okf]], nrm[nn[okf]]))
-                haus = float(np.quantile(dpl, cfg.hausdorff_quantile))
-                ab = regl[okf][:, 2] > 0.3
-                metrics["hausdorff_m"] = haus
-                metrics["hausdorff_above_ground_m"] = float(np.quantile(dpl[ab], cfg.hausdorff_quantile)) \
-                    if ab.sum() >= 20 else float("nan")
+            _, dist_e = _registered_distances(transform_points(Ls @ T_final @ inv_T(T_sweep_img), lid[in_r]),
+                                              tree, cs, nrm, cfg.hausdorff_quantile)
+            if dist_e is not None:
+                metrics["hausdorff_m"] = dist_e["hausdorff_m"]
+                metrics["hausdorff_above_ground_m"] = dist_e["hausdorff_above_ground_m"]
     if ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "translation":
         t5 = time.perf_counter()
         T_si = [inv_T(poses[jr]) @ P for P in P_img[:cfg.ours_edge_images]]
@@ -661,7 +662,6 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     # inflated for correlated residuals, plus the scale and the clock priors
     cov = np.zeros((6, 6))
     pose_edge = ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "pose"
-    pe = diag.edge_pose if pose_edge else None
     if pe is not None:
         # the edge fit's own covariance (dispersion-scaled, with the tilt prior), a floor for what the
         # images share (the LiDAR edge placement, the camera model), and the clock along the drive

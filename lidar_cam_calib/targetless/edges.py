@@ -300,13 +300,12 @@ class PoseEdgeResult:
     n_points: int
     n_views: int
     dispersion: float               # scatter of the per-image optima over what their information predicts
-    per_view: np.ndarray            # (K,6) linearised per-image optima relative to the joint one
 
 
-def _field(image: np.ndarray, cfg: EdgeConfig, trunc: float, blur: float):
-    """Truncated, smoothed edge-distance field and its gradient (px per px)."""
+def _field(dist: np.ndarray, trunc: float, blur: float):
+    """Truncated, smoothed edge-distance field (from ``image_distance``) and its gradient (px per px)."""
     import cv2
-    f = np.minimum(image_distance(image, cfg), trunc).astype(np.float32)
+    f = np.minimum(dist, trunc).astype(np.float32)
     if blur > 0:
         f = cv2.GaussianBlur(f, (0, 0), blur)
     gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3) / 8.0
@@ -358,7 +357,7 @@ def _scale(Hs: list, gs: list, naive: float, m: int) -> float:
 
 
 def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | None = None,
-                direction: np.ndarray | None = None, kinds=None, up: np.ndarray | None = None,
+                direction: np.ndarray | None = None, up: np.ndarray | None = None,
                 tilt_prior_deg: float = 0.0, height_prior_m: float = 0.0) -> PoseEdgeResult | None:
     """All six degrees of freedom of the extrinsic ``X`` (camera <- LiDAR at the exposure) from the
     LiDAR edges of each view's own sweep against that view's image edges.
@@ -374,16 +373,13 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
 
     ``up`` (camera frame): with ``tilt_prior_deg`` > 0, priors on the two rotations about the horizontal
     axes (and with ``height_prior_m`` > 0 on the translation along ``up``) around the start; with
-    ``tilt_prior_deg`` = 0, only the yaw about ``up`` and the translation are fitted (4 DoF).
-    ``kinds``: edge kinds to use (0 silhouettes, 1 paint; None both)."""
+    ``tilt_prior_deg`` = 0, only the yaw about ``up`` and the translation are fitted (4 DoF)."""
     from ..core.geometry import so3_exp
     cfg = cfg or EdgeConfig()
     K = cam.K
     V = []
     for v in views:
-        E, kind = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static)
-        if kinds is not None:
-            E = E[np.isin(kind, kinds)]
+        E, _ = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static)
         if E.shape[0] < cfg.min_points // 3:
             continue
         Tk = X @ inv_T(v.T_sweep_img)      # camera at this exposure <- sweep
@@ -391,15 +387,15 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         if vis.sum() < cfg.min_points // 3:
             continue
         # the edge points in the camera frame at X (perturbed on the left from here on)
-        V.append({"q": transform_points(Tk, E[vis]), "image": v.image})
+        V.append({"q": transform_points(Tk, E[vis]), "dist": image_distance(v.image, cfg)})
     n = sum(v["q"].shape[0] for v in V)
     if len(V) < 2 or n < cfg.min_points:
         return None
 
-    if up is None or tilt_prior_deg > 0:
+    u = None if up is None else np.asarray(up, float) / max(np.linalg.norm(up), 1e-12)
+    if u is None or tilt_prior_deg > 0:
         B = np.eye(6)
     else:  # yaw about the up axis (camera frame) and the translation: the tilt stays the caller's
-        u = np.asarray(up, float) / max(np.linalg.norm(up), 1e-12)
         B = np.zeros((6, 4))
         B[:3, 0] = u
         B[3:, 1:] = np.eye(3)
@@ -407,8 +403,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     # optional prior on the tilt (the two rotations about the horizontal axes, from the ground planes);
     # its weight is in units of the edge residual variance, set after a first pass without it
     Pt = np.zeros((6, 6))
-    if up is not None and tilt_prior_deg > 0 and m == 6:
-        u = np.asarray(up, float) / max(np.linalg.norm(up), 1e-12)
+    if u is not None and tilt_prior_deg > 0 and m == 6:
         Pt[:3, :3] = (np.eye(3) - np.outer(u, u)) / np.radians(tilt_prior_deg) ** 2
         if height_prior_m > 0:  # the height along the up axis (silhouettes are vertical: they do not see it)
             Pt[3:, 3:] = np.outer(u, u) / height_prior_m ** 2
@@ -432,6 +427,9 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
                 out.append(r)
         return out
 
+    def cost(xi, r, c):  # Cauchy loss of the residuals plus the prior
+        return float(0.5 * c * c * np.sum(np.log1p((r / c) ** 2)) + 0.5 * xi @ P @ xi)
+
     def lm(xi, fields, c, iters=25):
         lam = 1e-3
         for _ in range(iters):
@@ -442,7 +440,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
             Pm = B.T @ P @ B
             H = J.T @ (J * w[:, None]) + Pm
             g = J.T @ (w * r) + B.T @ (P @ xi)
-            f0 = float(0.5 * c * c * np.sum(np.log1p((r / c) ** 2)) + 0.5 * xi @ P @ xi)
+            f0 = cost(xi, r, c)
             improved = False
             for _ in range(8):
                 A = H + lam * np.diag(np.diag(H) + 1e-9)
@@ -452,8 +450,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
                     lam *= 10
                     continue
                 xn = xi + B @ step
-                rn = np.concatenate(residuals(xn, fields))
-                if float(0.5 * c * c * np.sum(np.log1p((rn / c) ** 2)) + 0.5 * xn @ P @ xn) < f0:
+                if cost(xn, np.concatenate(residuals(xn, fields)), c) < f0:
                     xi, lam, improved = xn, max(lam / 3, 1e-6), True
                     break
                 lam *= 10
@@ -463,7 +460,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         return xi
 
     xi = np.zeros(6)
-    coarse = [_field(v["image"], cfg, cfg.coarse_truncate_px, cfg.pose_coarse_blur_px) for v in V]
+    coarse = [_field(v["dist"], cfg.coarse_truncate_px, cfg.pose_coarse_blur_px) for v in V]
     if direction is not None:
         d = np.asarray(direction, float)
         d = d / max(np.linalg.norm(d), 1e-12)
@@ -473,7 +470,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         if 0 < i < len(s) - 1:
             xi[3:] = s[i] * d
     xi = lm(xi, coarse, 3.0)
-    fine = [_field(v["image"], cfg, cfg.truncate_px, cfg.pose_fine_blur_px) for v in V]
+    fine = [_field(v["dist"], cfg.truncate_px, cfg.pose_fine_blur_px) for v in V]
     c = cfg.pose_cauchy_px
     xi = lm(xi, fine, c)
     if np.any(Pt):
@@ -482,7 +479,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         P = Pt * _scale(H_, g_, var_, m)
         xi = lm(xi, fine, c)
     # statistics at the optimum
-    raw_f = [(np.minimum(image_distance(v["image"], cfg), cfg.truncate_px), None, None) for v in V]
+    raw_f = [(np.minimum(v["dist"], cfg.truncate_px), None, None) for v in V]
     r0 = np.concatenate(residuals(np.zeros(6), raw_f))
     r1 = np.concatenate(residuals(xi, raw_f))
     Hs, gs, naive = _stats(residuals(xi, fine, True), c)
@@ -492,17 +489,12 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         Hinv = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         return None
-    per = []
-    for Hk, gk in zip(Hs, gs):
-        Ak = Hk + 1e-6 * np.trace(Hk) * np.eye(m)
-        per.append(B @ -np.linalg.solve(Ak, gk))
-    k = len(V)
     T = X.copy()
     T[:3, :3] = so3_exp(xi[:3]) @ X[:3, :3]
     T[:3, 3] = so3_exp(xi[:3]) @ X[:3, 3] + xi[3:]
     return PoseEdgeResult(T=T, xi=xi, cov=B @ Hinv @ B.T * scale, cost0=float(r0.mean()), cost=float(r1.mean()),
                           inliers0=float(np.mean(r0 < 1.5)), inliers=float(np.mean(r1 < 1.5)), n_points=n,
-                          n_views=k, dispersion=scale / max(naive, 1e-12), per_view=np.array(per))
+                          n_views=len(V), dispersion=scale / max(naive, 1e-12))
 
 
 __all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "image_distance", "lidar_edges", "proj_jacobian",
