@@ -177,6 +177,21 @@ def test_family_varies_and_respects_speed_sets():
     assert not np.allclose(a.T_camera_lidar, b.T_camera_lidar)
 
 
+def test_family_draws_only_lenses_the_renderer_can_render():
+    # fast seed 410 drew k1 = -0.21 on an 82 deg field: the image corners had no ray ("too strong to render")
+    from lidar_cam_calib.sim.street_world import _lens_unfolded
+    folded = [(sp, s) for sp in ("slow", "fast") for s in range(400)
+              if not _lens_unfolded(sample_street_family(s, sp).camera)]
+    assert folded == []
+    sc = sample_street_family(410, "fast")
+    assert -0.2 < sc.camera.D[0] < 0.0
+    run = simulate_drive(sc, duration_s=0.1, image_scale=0.25)
+    assert len(run.images) >= 1 and run.images[0].image.std() > 5
+    # the check itself refuses what folds
+    cam = dataclasses.replace(sc.camera, D=[-0.35, 0.0, 0.0, 0.0, 0.0])
+    assert not _lens_unfolded(cam)
+
+
 def test_config_errors_and_shipped_scenarios():
     with pytest.raises(ConfigError, match="unknown"):
         load_street_scenario({"lidar": {"presett": "hdl64"}})

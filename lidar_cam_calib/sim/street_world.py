@@ -241,6 +241,21 @@ def default_street_scenario() -> StreetScenario:
     return StreetScenario()
 
 
+def _lens_unfolded(c, margin: float = 1.05, min_slope: float = 0.3) -> bool:
+    """True when the radial distortion of camera ``c`` maps the undistorted radius monotonically (slope
+    above ``min_slope``) out to ``margin`` times the image corner's distorted radius: every pixel then has
+    one ray, as with a real lens (a wide field with a strong negative k1 and a small k2 folds over)."""
+    k1, k2 = float(c.D[0]), float(c.D[1])
+    xs = max(c.cx_px, c.width_px - 1 - c.cx_px) / c.fx_px
+    ys = max(c.cy_px, c.height_px - 1 - c.cy_px) / c.fy_px
+    rd = margin * float(np.hypot(xs, ys))
+    r = np.linspace(0.0, 4.0, 8001)
+    d = r * (1 + k1 * r ** 2 + k2 * r ** 4)
+    slope = 1 + 3 * k1 * r ** 2 + 5 * k2 * r ** 4
+    reach = np.nonzero(d >= rd)[0]
+    return reach.size > 0 and bool(np.all(slope[:reach[0] + 1] > min_slope))
+
+
 def sample_street_family(seed: int, speed: str = "slow") -> StreetScenario:
     """One member of the scenario family, drawn from ``seed``.
 
@@ -284,6 +299,10 @@ def sample_street_family(seed: int, speed: str = "slow") -> StreetScenario:
     c.cy_px = float((c.height_px - 1) / 2 + u(-0.03, 0.03) * c.height_px)
     c.D = [float(u(-0.2, 0.02)) * scale, float(u(0.0, 0.06)), float(u(-1e-3, 1e-3)),
            float(u(-1e-3, 1e-3)), 0.0]
+    for _ in range(30):  # a real lens: weaken a barrel distortion that would fold over inside the image
+        if _lens_unfolded(c):
+            break
+        c.D[0] *= 0.85
     c.rate_hz = float(rng.choice([10.0, 10.0, 15.0, 20.0]))
     c.noise_sigma = float(u(1.0, 3.5))
     m = sc.mount
