@@ -131,3 +131,26 @@ def test_refine_pose_stays_at_the_truth_and_needs_edges():
     cam, img, pts, X = _scene(boards=[])
     empty = [EdgeView(img, pts, pts, None, np.ones(pts.shape[0], bool), np.eye(4))] * 2
     assert refine_pose(empty, cam, X) is None
+
+
+def test_coarse_candidates_are_ranked_by_their_edges():
+    """The bird's-eye correlation of a street with repeating objects has peaks metres apart; the
+    candidate whose LiDAR edges meet the image edges after a short yaw-and-translation fit is the true
+    one, and the ratio of the inlier fractions says how distinct it is."""
+    from lidar_cam_calib.targetless.calibrator import _rank_candidates, _rank_fit
+    cam, X, views = _views()
+    ahead, lateral = X[:3, :3] @ np.array([1.0, 0.0, 0.0]), X[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    cands = []
+    for shift in (2.0 * lateral - 1.5 * ahead, 0.15 * ahead + 0.1 * lateral, -2.5 * lateral):
+        Xc = X.copy()
+        Xc[:3, 3] = X[:3, 3] + shift
+        cands.append(Xc)
+    link = make_T(np.eye(3), np.array([1.0, 0.0, 0.0]))
+    fits = [_rank_fit(views, cam, Xc, np.eye(4), link, EdgeConfig(min_points=50)) for Xc in cands]
+    best, ratio = _rank_candidates(fits)
+    assert best == 1 and ratio > 1.3, (best, ratio, [f.inliers if f else None for f in fits])
+    rot_deg, _ = pose_errors(fits[1].T, X)
+    assert rot_deg < 0.1 and np.linalg.norm(fits[1].T[:3, 3] - X[:3, 3]) < 0.05
+    # no candidate with edges: no choice, no ratio
+    best, ratio = _rank_candidates([None, None])
+    assert best is None and np.isnan(ratio)

@@ -142,9 +142,18 @@ class TargetlessConfig:
                                                 range=(0.0, 5.0))
     ours_ground_sigma_deg: float = cfg_field(0.1, "ours: 1-sigma of a ground normal (Wahba weight)",
                                              range=(0.001, 10.0))
-    coarse_radius_m: float = cfg_field(6.0, "ours: horizontal translation search radius between the levelled "
-                                            "clouds (lever arm plus the motion between sweep and image)",
-                                       range=(0.5, 30.0))
+    ours_coarse_candidates: int = cfg_field(12, "ours: bird's-eye translation peaks (1 m apart) ranked by the image "
+                                                "edges (1: the highest peak, as before)", range=(1, 50))
+    ours_coarse_min_score: float = cfg_field(0.3, "ours: a candidate peak's correlation at least this fraction of "
+                                                  "the highest", range=(0.0, 1.0))
+    ours_min_coarse_edge_ratio: float = cfg_field(1.15, "ours, gate: the chosen candidate's edge inlier fraction "
+                                                       "this many times the best elsewhere's (or a distinct "
+                                                       "bird's-eye peak)",
+                                                  range=(1.0, 10.0))
+    coarse_radius_m: float = cfg_field(2.5, "ours: the largest horizontal distance between camera and LiDAR on "
+                                            "the vehicle (m): the translation search radius about the position "
+                                            "of a zero lever arm (the motion between sweep and image taken out)",
+                                       range=(0.3, 30.0))
     dense_refs: int = cfg_field(4, "frames the densification starts flow tracks from", range=(1, 30))
     covariance_inflation: float = cfg_field(3.0, "factor on the ICP covariance for correlated residuals",
                                             range=(1.0, 1000.0))
@@ -205,6 +214,7 @@ class WindowDiagnostics:
     T_final: np.ndarray | None = None
     T_pre_edge: np.ndarray | None = None
     edge_pose: object = None
+    coarse_candidates: list = dataclasses.field(default_factory=list)  # ours: [(T, edge fit)], BEV order
     timings_s: dict = dataclasses.field(default_factory=dict)
     metrics: dict = dataclasses.field(default_factory=dict)
 
@@ -363,6 +373,33 @@ def _registered_distances(regl: np.ndarray, tree, cs: np.ndarray, nrm: np.ndarra
                 "overlap_above_ground_points": int(above.sum()), "overlap_points": int(ok.sum())}
 
 
+def _rank_fit(views: list, cam, X: np.ndarray, Ll: np.ndarray, T_link: np.ndarray, ecfg: EdgeConfig,
+              max_rot_deg: float = 1.5, max_shift_m: float = 1.0):
+    """A coarse candidate's edge fit: yaw about the LiDAR's up axis and the translation of ``X``
+    (the tilt comes from the ground planes), with the 1-D search along the driving direction. None when
+    too few edges are seen; a fit that left the candidate (more than ``max_rot_deg`` / ``max_shift_m``)
+    found some other alignment of the edges, not this candidate's: it counts with no inliers."""
+    up = X[:3, :3] @ Ll[2, :3]
+    d = X[:3, :3] @ (T_link[:3, 3] / max(np.linalg.norm(T_link[:3, 3]), 1e-9))
+    f = refine_pose(views, cam, X, ecfg, direction=d, up=up, tilt_prior_deg=0.0)
+    if f is not None and (np.degrees(np.linalg.norm(f.xi[:3])) > max_rot_deg or
+                          np.linalg.norm(f.xi[3:]) > max_shift_m):
+        return dataclasses.replace(f, T=X.copy(), inliers=0.0)
+    return f
+
+
+def _rank_candidates(fits: list, same_m: float = 0.5) -> tuple[int | None, float]:
+    """(index of the fit whose edges meet best, its inlier fraction over the best of the fits that
+    ended elsewhere (> ``same_m`` apart; inf when none did)); (None, nan) when no fit has edges."""
+    ok = [i for i, f in enumerate(fits) if f is not None]
+    if not ok:
+        return None, float("nan")
+    b = max(ok, key=lambda i: fits[i].inliers)
+    others = [fits[i].inliers for i in ok
+              if np.linalg.norm(fits[i].T[:3, 3] - fits[b].T[:3, 3]) > same_m]
+    return b, (fits[b].inliers / max(max(others), 0.01) if others else float("inf"))
+
+
 def _level(points: np.ndarray, up: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     n, d = ground_plane(points, rng, up)
     L = make_T(level_rotation(n), np.zeros(3))
@@ -439,6 +476,22 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     others, T_others = _neighbours(sweeps, use, poses, jr, cfg.dynamic_sweep_gap)
     # per point: how far it moved between the compensated sweeps (objects and the edge views use it)
     motion = point_motion(ref_sweep.points, others, T_others) if others else np.zeros(lid.shape[0])
+    # -- edge views (ours): each image with the sweep nearest its exposure, de-skewed, its moving points
+    # marked; they rank the coarse translations and refine the extrinsic
+    views = []
+    if ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "pose":
+        static_cache: dict = {jr: (lid, motion <= cfg.dynamic_dist_m)}  # sweep -> (de-skewed, static)
+        for k in range(min(cfg.ours_edge_images, len(images))):
+            jk = int(np.argmin(np.abs(stamps_u - t_img[k])))
+            sw = sweeps[use[jk]]
+            if jk not in static_cache:
+                pk = deskew_sweep(sw, link_of(jk).T, cfg) if cfg.deskew else sw.points
+                oth, T_oth = _neighbours(sweeps, use, poses, jk, cfg.dynamic_sweep_gap)
+                st = point_motion(sw.points, oth, T_oth) <= cfg.dynamic_dist_m if oth \
+                    else np.ones(sw.points.shape[0], bool)
+                static_cache[jk] = (pk, st)
+            pk, st = static_cache[jk]
+            views.append(EdgeView(ims[k], sw.points, pk, sw.intensity, st, inv_T(poses[jk]) @ P_img[k]))
     # -- camera cloud: only points whose triangulation is precise (forward motion: far points ahead have
     # tiny parallax and metre-level depth errors); sigma from the SfM's own re-projection error
     cloud_all = np.concatenate([dense, sfm.points])
@@ -484,6 +537,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     tree = cKDTree(cs)
     nrm, _ = estimate_normals(cs, tree)
     icp = None
+    coarse_fit = None  # ours: the chosen coarse candidate's edge fit, when the edges chose it
     if ours:
         # rotation (no guess): Wahba's problem on the two ground normals and the camera trajectory.
         # Camera centre k in the camera-0 frame: c_k = R (q_k + (A_k - I) o), with (A_k, q_k) the LiDAR
@@ -513,10 +567,31 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             if t_lev is None:
                 # translation: layered bird's-eye cross-correlation of everything above the ground
                 # (R_lev lid ~ cam + t'  <=>  t_lev = -t')
-                t_bev, hit, ratio = layered_bev_translation((cl[~B.ground]) @ R_lev.T, cs[~A.ground], 0.0,
-                                                            radius_m=cfg.coarse_radius_m)
+                # a zero lever arm puts the LiDAR origin at exposure 0 on the camera centre
+                # (cam_lev = R_lev lid_lev + t_lev): the search is about there, as far as the sensors can be apart
+                t_zero = Ls[:3, 3] - R_lev @ (Ll @ T_S_L0)[:3, 3]
+                t_bev, hit, ratio, peaks = layered_bev_translation(
+                    (cl[~B.ground]) @ R_lev.T, cs[~A.ground], 0.0, radius_m=cfg.coarse_radius_m,
+                    n_peaks=cfg.ours_coarse_candidates if views else 1, centre=-t_zero)
                 t_lev = -t_bev
                 metrics.update({"bev_peak_ratio": ratio, "bev_hit_fraction": hit})
+                peaks = [p for p in peaks if p[1] >= cfg.ours_coarse_min_score]
+                if len(peaks) > 1:
+                    # the street repeats itself along its axis (trees, lights, facades at a spacing): fit
+                    # each candidate's LiDAR edges to the image edges (yaw and translation, from the
+                    # extrinsic it implies) and keep the one whose edges meet best
+                    Xc = [inv_T(Ls) @ make_T(R_lev, -tp) @ Ll @ T_S_L0 for tp, _ in peaks]
+                    fits = [_rank_fit(views, cam, X_, Ll, link.T, cfg.edges) for X_ in Xc]
+                    best_i, ratio_e = _rank_candidates(fits)
+                    if best_i is not None and fits[best_i].inliers < cfg.ours_min_edge_inliers:
+                        # the edges meet poorly wherever the candidates put them: keep the highest peak
+                        best_i, ratio_e = None, float("nan")
+                    if best_i is not None:
+                        t_lev = -peaks[best_i][0]
+                        coarse_fit = fits[best_i]
+                        metrics.update({"coarse_candidates": len(peaks), "coarse_rank": best_i,
+                                        "coarse_edge_inliers": fits[best_i].inliers, "coarse_edge_ratio": ratio_e})
+                    diag.coarse_candidates = list(zip(Xc, fits))
                 T_oba_lev = make_T(R_lev, t_lev)
             # translation-only point-to-plane ICP, camera cloud as the source (the rotation is better
             # determined by the ground and the trajectory than by ICP on a street, which is nearly
@@ -599,24 +674,21 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     vdir = T_final[:3, :3] @ (link.T[:3, 3] / max(np.linalg.norm(link.T[:3, 3]), 1e-9))
     edge = pe = None
     diag.T_pre_edge = T_final
-    if ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "pose":
+    if views:
         t5 = time.perf_counter()
-        views = []
-        static_cache: dict = {jr: (lid, motion <= cfg.dynamic_dist_m)}  # sweep -> (de-skewed, static)
-        for k in range(min(cfg.ours_edge_images, len(images))):
-            jk = int(np.argmin(np.abs(stamps_u - t_img[k])))
-            sw = sweeps[use[jk]]
-            if jk not in static_cache:
-                pk = deskew_sweep(sw, link_of(jk).T, cfg) if cfg.deskew else sw.points
-                oth, T_oth = _neighbours(sweeps, use, poses, jk, cfg.dynamic_sweep_gap)
-                st = point_motion(sw.points, oth, T_oth) <= cfg.dynamic_dist_m if oth \
-                    else np.ones(sw.points.shape[0], bool)
-                static_cache[jk] = (pk, st)
-            pk, st = static_cache[jk]
-            views.append(EdgeView(ims[k], sw.points, pk, sw.intensity, st, inv_T(poses[jk]) @ P_img[k]))
         up_cam = T_final[:3, :3] @ Ll[2, :3]  # the LiDAR ground normal in the camera frame
         pe = refine_pose(views, cam, T_final, cfg.edges, direction=vdir, up=up_cam,
                          tilt_prior_deg=cfg.ours_edge_tilt_prior_deg, height_prior_m=cfg.ours_edge_height_prior_m)
+        if coarse_fit is not None:
+            # the edges chose the coarse translation: their own fit from it is a second start (the clouds'
+            # ICP may have slid away from it along the street)
+            Xs = coarse_fit.T
+            pe2 = refine_pose(views, cam, Xs, cfg.edges, direction=Xs[:3, :3] @ (T_final[:3, :3].T @ vdir),
+                              up=Xs[:3, :3] @ Ll[2, :3], tilt_prior_deg=cfg.ours_edge_tilt_prior_deg,
+                              height_prior_m=cfg.ours_edge_height_prior_m)
+            if pe2 is not None and (pe is None or pe2.inliers > pe.inliers):
+                pe = pe2
+                metrics["edge_from_coarse_fit"] = 1
         diag.edge_pose = pe
         tm["edges"] = time.perf_counter() - t5
         if pe is not None:
@@ -718,10 +790,17 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     if haus > max_h and solver != "oba":
         raise CalibError(f"gate failed: Hausdorff distance {haus * 100:.1f} cm between the registered clouds > "
                          f"{max_h * 100:.1f} cm; calibration rejected")
-    if ours and metrics.get("bev_peak_ratio", np.inf) < cfg.ours_min_bev_peak_ratio:
+    # distinct translation: the chosen candidate's edges meet clearly better than anywhere else, or (the
+    # highest peak kept) its bird's-eye peak stands out
+    edge_distinct = metrics.get("coarse_edge_ratio", 0.0) >= cfg.ours_min_coarse_edge_ratio
+    bev_distinct = metrics.get("bev_peak_ratio", np.inf) >= cfg.ours_min_bev_peak_ratio and \
+        metrics.get("coarse_rank", 0) == 0
+    if ours and not (edge_distinct or bev_distinct):
+        er = f", image-edge inliers chosen / best elsewhere {metrics['coarse_edge_ratio']:.2f} < " \
+             f"{cfg.ours_min_coarse_edge_ratio:.2f}" if "coarse_edge_ratio" in metrics else ""
         raise CalibError(f"gate failed: the translation search has no distinct peak (best / best elsewhere "
-                         f"{metrics['bev_peak_ratio']:.2f} < {cfg.ours_min_bev_peak_ratio:.2f}): the street looks "
-                         "the same along its axis; calibration rejected (drive past poles, trunks, signs)")
+                         f"{metrics['bev_peak_ratio']:.2f} < {cfg.ours_min_bev_peak_ratio:.2f}{er}): the street "
+                         "looks the same along its axis; calibration rejected (drive past poles, trunks, signs)")
     if ours and not (ha <= cfg.ours_max_hausdorff_above_ground_m):
         raise CalibError(f"gate failed: Hausdorff distance above the ground {ha * 100:.1f} cm > "
                          f"{cfg.ours_max_hausdorff_above_ground_m * 100:.1f} cm (the poles, trunks and facades "

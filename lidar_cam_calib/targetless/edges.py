@@ -1,4 +1,4 @@
-"""Translation refinement from LiDAR edges against image edges (ROS-free).
+"""Extrinsic refinement from LiDAR edges against image edges (ROS-free).
 
 A street is nearly degenerate along its axis for cloud-to-cloud registration,
 and the SfM camera cloud carries a depth bias correlated through its poses.
@@ -17,9 +17,16 @@ street. This module measures that directly:
   the odometry; points hidden from the camera (a z-buffer of all static LiDAR
   points) or outside the image at ``delta = 0`` are left out for every
   ``delta`` so the score compares the same points;
-* a 1-D coarse-to-fine search along one direction (the driving direction),
-  then optionally a small 3-D refinement; the spread of the per-image optima
-  gives the uncertainty.
+* ``refine_translation`` (the older step): a 1-D coarse-to-fine search along
+  one direction (the driving direction), then optionally a small 3-D
+  refinement; the spread of the per-image optima gives the uncertainty;
+* ``refine_pose`` (the default): all six degrees of freedom, each image with
+  the sweep nearest its exposure, Levenberg-Marquardt on smoothed distance
+  fields with Cauchy weights, priors on the tilt and height, a covariance
+  scaled by the images' dispersion. The calibrator also runs it, yaw and
+  translation only, from each coarse translation candidate to rank them.
+  A view's LiDAR edges and distance map are computed once (``prepare_view``,
+  with the first configuration it is given) and shared by those fits.
 """
 from __future__ import annotations
 
@@ -286,6 +293,18 @@ class EdgeView:
     intensity: np.ndarray | None
     static: np.ndarray              # (N,) bool: points that did not move between sweeps
     T_sweep_img: np.ndarray         # LiDAR at the sweep stamp <- LiDAR at this exposure
+    edges: np.ndarray | None = None  # (M,3) its LiDAR edges (de-skewed), filled by prepare_view
+    dist: np.ndarray | None = None   # the image's edge-distance map, filled by prepare_view
+
+
+def prepare_view(v: EdgeView, cfg: EdgeConfig) -> EdgeView:
+    """Fill the view's LiDAR edges and image edge-distance map once (both do not depend on the
+    extrinsic)."""
+    if v.edges is None:
+        v.edges = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static)[0]
+    if v.dist is None:
+        v.dist = image_distance(v.image, cfg)
+    return v
 
 
 @dataclasses.dataclass
@@ -379,7 +398,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     K = cam.K
     V = []
     for v in views:
-        E, _ = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static)
+        E = prepare_view(v, cfg).edges
         if E.shape[0] < cfg.min_points // 3:
             continue
         Tk = X @ inv_T(v.T_sweep_img)      # camera at this exposure <- sweep
@@ -387,7 +406,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         if vis.sum() < cfg.min_points // 3:
             continue
         # the edge points in the camera frame at X (perturbed on the left from here on)
-        V.append({"q": transform_points(Tk, E[vis]), "dist": image_distance(v.image, cfg)})
+        V.append({"q": transform_points(Tk, E[vis]), "dist": v.dist})
     n = sum(v["q"].shape[0] for v in V)
     if len(V) < 2 or n < cfg.min_points:
         return None
@@ -497,5 +516,5 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
                           n_views=len(V), dispersion=scale / max(naive, 1e-12))
 
 
-__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "image_distance", "lidar_edges", "proj_jacobian",
-           "refine_pose", "refine_translation"]
+__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "image_distance", "lidar_edges",
+           "prepare_view", "proj_jacobian", "refine_pose", "refine_translation"]
