@@ -373,14 +373,19 @@ def _registered_distances(regl: np.ndarray, tree, cs: np.ndarray, nrm: np.ndarra
                 "overlap_above_ground_points": int(above.sum()), "overlap_points": int(ok.sum())}
 
 
+def _drive_axes(X: np.ndarray, Ll: np.ndarray, T_link: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(driving direction, LiDAR ground normal) in the camera frame of the extrinsic ``X``."""
+    d = T_link[:3, 3] / max(np.linalg.norm(T_link[:3, 3]), 1e-9)
+    return X[:3, :3] @ d, X[:3, :3] @ Ll[2, :3]
+
+
 def _rank_fit(views: list, cam, X: np.ndarray, Ll: np.ndarray, T_link: np.ndarray, ecfg: EdgeConfig,
               max_rot_deg: float = 1.5, max_shift_m: float = 1.0):
     """A coarse candidate's edge fit: yaw about the LiDAR's up axis and the translation of ``X``
     (the tilt comes from the ground planes), with the 1-D search along the driving direction. None when
     too few edges are seen; a fit that left the candidate (more than ``max_rot_deg`` / ``max_shift_m``)
     found some other alignment of the edges, not this candidate's: it counts with no inliers."""
-    up = X[:3, :3] @ Ll[2, :3]
-    d = X[:3, :3] @ (T_link[:3, 3] / max(np.linalg.norm(T_link[:3, 3]), 1e-9))
+    d, up = _drive_axes(X, Ll, T_link)
     f = refine_pose(views, cam, X, ecfg, direction=d, up=up, tilt_prior_deg=0.0)
     if f is not None and (np.degrees(np.linalg.norm(f.xi[:3])) > max_rot_deg or
                           np.linalg.norm(f.xi[3:]) > max_shift_m):
@@ -682,10 +687,9 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         if coarse_fit is not None:
             # the edges chose the coarse translation: their own fit from it is a second start (the clouds'
             # ICP may have slid away from it along the street)
-            Xs = coarse_fit.T
-            pe2 = refine_pose(views, cam, Xs, cfg.edges, direction=Xs[:3, :3] @ (T_final[:3, :3].T @ vdir),
-                              up=Xs[:3, :3] @ Ll[2, :3], tilt_prior_deg=cfg.ours_edge_tilt_prior_deg,
-                              height_prior_m=cfg.ours_edge_height_prior_m)
+            d_s, up_s = _drive_axes(coarse_fit.T, Ll, link.T)
+            pe2 = refine_pose(views, cam, coarse_fit.T, cfg.edges, direction=d_s, up=up_s,
+                              tilt_prior_deg=cfg.ours_edge_tilt_prior_deg, height_prior_m=cfg.ours_edge_height_prior_m)
             if pe2 is not None and (pe is None or pe2.inliers > pe.inliers):
                 pe = pe2
                 metrics["edge_from_coarse_fit"] = 1
