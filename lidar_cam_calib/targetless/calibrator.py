@@ -71,7 +71,7 @@ from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
-from .edges import EdgeConfig, EdgeView, proj_jacobian, refine_pose, refine_translation
+from .edges import EdgeConfig, EdgeView, proj_jacobian, refine_pose, refine_translation, yaw_about_edges
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, point_motion,
                       voxel_down)
 from .frame import CameraFrame, LidarSweep
@@ -163,13 +163,22 @@ class TargetlessConfig:
                                             "image against its own nearest sweep ('pose'), or the translation "
                                             "from the reference sweep only ('translation')",
                                     choices=("pose", "translation"))
-    ours_edge_tilt_prior_deg: float = cfg_field(0.1, "ours, pose mode: 1-sigma prior of the tilt from the two "
+    ours_edge_tilt_prior_deg: float = cfg_field(0.3, "ours, pose mode: 1-sigma prior of the tilt from the two "
                                                       "ground planes (the edges see pitch and roll weakly: "
-                                                      "LiDAR scan lines give mostly vertical silhouettes)",
+                                                      "LiDAR scan lines give mostly vertical silhouettes; the "
+                                                      "camera cloud's ground normal was measured 0.02-0.6 deg "
+                                                      "off on the simulated family)",
                                                 range=(0.0, 10.0))
     ours_edge_height_prior_m: float = cfg_field(0.03, "ours, pose mode: 1-sigma prior of the height along the up "
                                                       "axis from the registered ground planes (vertical "
                                                       "silhouettes do not see it)", range=(0.0, 10.0))
+    ours_edge_restart_yaw_deg: float = cfg_field(0.4, "ours, pose mode: the edge fit restarts from its result "
+                                                       "turned by this yaw and twice it, each way, about the "
+                                                       "edges' median point (0: no restarts)",
+                                                 range=(0.0, 5.0))
+    ours_edge_restart_min_gain: float = cfg_field(0.01, "ours, pose mode: a restart replaces the fit only when its "
+                                                        "inlier fraction is higher by at least this",
+                                                  range=(0.0, 1.0))
     ours_min_edge_inliers: float = cfg_field(0.5, "ours, pose mode, gate: fewest LiDAR edge points within 1.5 px "
                                                   "of an image edge after the refinement (a fraction)",
                                              range=(0.0, 1.0))
@@ -693,6 +702,19 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             if pe2 is not None and (pe is None or pe2.inliers > pe.inliers):
                 pe = pe2
                 metrics["edge_from_coarse_fit"] = 1
+        if pe is not None and cfg.ours_edge_restart_yaw_deg > 0:
+            # restarts along the yaw-lateral valley (a single start can stop in a side minimum there)
+            d_r, up_r = _drive_axes(pe.T, Ll, link.T)
+            best = pe
+            for k in (-2, -1, 1, 2):
+                Xr = yaw_about_edges(views, pe.T, up_r, k * cfg.ours_edge_restart_yaw_deg)
+                pr = refine_pose(views, cam, Xr, cfg.edges, direction=d_r, up=up_r,
+                                 tilt_prior_deg=cfg.ours_edge_tilt_prior_deg,
+                                 height_prior_m=cfg.ours_edge_height_prior_m)
+                if pr is not None and pr.inliers >= best.inliers + cfg.ours_edge_restart_min_gain:
+                    best = pr
+                    metrics["edge_restart_yaw_deg"] = k * cfg.ours_edge_restart_yaw_deg
+            pe = best
         diag.edge_pose = pe
         tm["edges"] = time.perf_counter() - t5
         if pe is not None:

@@ -307,6 +307,21 @@ def prepare_view(v: EdgeView, cfg: EdgeConfig) -> EdgeView:
     return v
 
 
+def yaw_about_edges(views: list, X: np.ndarray, up: np.ndarray, deg: float) -> np.ndarray:
+    """The extrinsic ``X`` turned by ``deg`` about the camera-frame ``up`` axis through the median of the
+    views' LiDAR edges (camera frame, from ``prepare_view``): the bulk of the edges stays put while near
+    and far ones move apart. A yaw and a lateral shift trade off along that valley of the edge fit, so
+    starts along it reach minima a single start misses."""
+    from ..core.geometry import so3_exp
+    q = [transform_points(X @ inv_T(v.T_sweep_img), v.edges) for v in views if v.edges is not None]
+    c0 = np.median(np.concatenate(q), axis=0) if q else np.zeros(3)
+    u = np.asarray(up, float) / max(np.linalg.norm(up), 1e-12)
+    D = np.eye(4)
+    D[:3, :3] = so3_exp(np.radians(deg) * u)
+    D[:3, 3] = c0 - D[:3, :3] @ c0
+    return D @ X
+
+
 @dataclasses.dataclass
 class PoseEdgeResult:
     T: np.ndarray                   # refined extrinsic (camera <- LiDAR at the exposure)
@@ -517,4 +532,4 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
 
 
 __all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "image_distance", "lidar_edges",
-           "prepare_view", "proj_jacobian", "refine_pose", "refine_translation"]
+           "prepare_view", "proj_jacobian", "refine_pose", "refine_translation", "yaw_about_edges"]
