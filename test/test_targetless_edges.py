@@ -154,3 +154,48 @@ def test_coarse_candidates_are_ranked_by_their_edges():
     # no candidate with edges: no choice, no ratio
     best, ratio = _rank_candidates([None, None])
     assert best is None and np.isnan(ratio)
+
+
+def test_yaw_about_edges_turns_about_the_edges_median_point():
+    """The restart move turns the extrinsic about the up axis through the median LiDAR edge point: that
+    point keeps its camera position while the rotation changes by the asked yaw."""
+    from lidar_cam_calib.targetless.edges import prepare_view, yaw_about_edges
+    from lidar_cam_calib.core.geometry import transform_points
+    cam, X, views = _views()
+    cfg = EdgeConfig(min_points=50)
+    for v in views:
+        prepare_view(v, cfg)
+    up = X[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    Xr = yaw_about_edges(views, X, up, 0.8)
+    rot_deg, _ = pose_errors(Xr, X)
+    assert abs(rot_deg - 0.8) < 1e-6
+    q = np.median(np.concatenate([transform_points(X, v.edges) for v in views]), axis=0)
+    p_lidar = transform_points(np.linalg.inv(X), q[None])[0]
+    assert np.linalg.norm(transform_points(Xr, p_lidar[None])[0] - q) < 1e-9
+    # the edges far from that point move; the board silhouettes then miss the image edges
+    assert np.linalg.norm(Xr[:3, 3] - X[:3, 3]) > 0.01
+
+
+def test_edge_restarts_leave_a_side_minimum_along_the_yaw_valley():
+    """A fit left 0.8 deg along the yaw-lateral valley is replaced by the restart that reaches the truth
+    (more inliers); a fit at the truth is kept."""
+    import dataclasses
+    from lidar_cam_calib.targetless.calibrator import TargetlessConfig, _edge_restarts
+    from lidar_cam_calib.targetless.edges import prepare_view, yaw_about_edges
+    cam, X, views = _views()
+    cfg = TargetlessConfig()
+    cfg = dataclasses.replace(cfg, edges=dataclasses.replace(cfg.edges, min_points=50))
+    for v in views:
+        prepare_view(v, cfg.edges)
+    up = X[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    link = make_T(np.eye(3), np.array([1.0, 0.0, 0.0]))
+    Xbad = yaw_about_edges(views, X, up, 0.8)
+    at = refine_pose(views, cam, Xbad, cfg.edges, up=up, tilt_prior_deg=0.3)
+    stuck = dataclasses.replace(at, T=Xbad, inliers=at.inliers0)  # as if the fit had stopped there
+    best, taken = _edge_restarts(views, cam, stuck, np.eye(4), link, cfg)
+    assert taken != 0.0 and best.inliers >= stuck.inliers + 0.01
+    rot_deg, _ = pose_errors(best.T, X)
+    assert rot_deg < 0.1 and np.linalg.norm(best.T[:3, 3] - X[:3, 3]) < 0.02, (rot_deg, best.T[:3, 3] - X[:3, 3])
+    good = refine_pose(views, cam, X, cfg.edges, up=up, tilt_prior_deg=0.3)
+    kept, taken = _edge_restarts(views, cam, good, np.eye(4), link, cfg)
+    assert taken == 0.0 and kept is good

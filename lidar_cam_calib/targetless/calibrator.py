@@ -37,7 +37,8 @@ compatibility test), ``ours``:
   the source, moving LiDAR points left out);
 * the extrinsic refined on the images (:mod:`.edges` ``refine_pose``, default): every image against
   the LiDAR edges of its own nearest sweep, six degrees of freedom with ground-plane priors on the
-  tilt and the height, a dispersion-scaled covariance, and gates on the edge fit;
+  tilt and the height, a dispersion-scaled covariance, and gates on the edge fit; restarted along
+  the valley where a yaw and a lateral shift trade off (``_edge_restarts``);
 * (``ours_edge_mode='translation'``, the earlier step) the translation refined on the images: the LiDAR silhouettes
   and intensity steps of the reference sweep, projected into the first images
   of the window (each with its odometry pose), put on the Canny edges (1-D
@@ -402,6 +403,22 @@ def _rank_fit(views: list, cam, X: np.ndarray, Ll: np.ndarray, T_link: np.ndarra
     return f
 
 
+def _edge_restarts(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg: TargetlessConfig):
+    """(fit, the restart's yaw in deg, 0 for none): the 6-DoF edge fit ``pe`` restarted from its result
+    turned by -2, -1, 1, 2 times ``ours_edge_restart_yaw_deg`` about the edges' median point. Along that
+    valley a yaw and a lateral shift trade off and a single start can stop in a side minimum; a restart
+    replaces the fit only when its inlier fraction is ``ours_edge_restart_min_gain`` higher."""
+    d, up = _drive_axes(pe.T, Ll, T_link)
+    best, taken = pe, 0.0
+    for k in (-2, -1, 1, 2):
+        a = k * cfg.ours_edge_restart_yaw_deg
+        r = refine_pose(views, cam, yaw_about_edges(views, pe.T, up, a), cfg.edges, direction=d, up=up,
+                        tilt_prior_deg=cfg.ours_edge_tilt_prior_deg, height_prior_m=cfg.ours_edge_height_prior_m)
+        if r is not None and r.inliers >= best.inliers + cfg.ours_edge_restart_min_gain:
+            best, taken = r, a
+    return best, taken
+
+
 def _rank_candidates(fits: list, same_m: float = 0.5) -> tuple[int | None, float]:
     """(index of the fit whose edges meet best, its inlier fraction over the best of the fits that
     ended elsewhere (> ``same_m`` apart; inf when none did)); (None, nan) when no fit has edges."""
@@ -703,18 +720,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                 pe = pe2
                 metrics["edge_from_coarse_fit"] = 1
         if pe is not None and cfg.ours_edge_restart_yaw_deg > 0:
-            # restarts along the yaw-lateral valley (a single start can stop in a side minimum there)
-            d_r, up_r = _drive_axes(pe.T, Ll, link.T)
-            best = pe
-            for k in (-2, -1, 1, 2):
-                Xr = yaw_about_edges(views, pe.T, up_r, k * cfg.ours_edge_restart_yaw_deg)
-                pr = refine_pose(views, cam, Xr, cfg.edges, direction=d_r, up=up_r,
-                                 tilt_prior_deg=cfg.ours_edge_tilt_prior_deg,
-                                 height_prior_m=cfg.ours_edge_height_prior_m)
-                if pr is not None and pr.inliers >= best.inliers + cfg.ours_edge_restart_min_gain:
-                    best = pr
-                    metrics["edge_restart_yaw_deg"] = k * cfg.ours_edge_restart_yaw_deg
-            pe = best
+            pe, metrics["edge_restart_yaw_deg"] = _edge_restarts(views, cam, pe, Ll, link.T, cfg)
         diag.edge_pose = pe
         tm["edges"] = time.perf_counter() - t5
         if pe is not None:
