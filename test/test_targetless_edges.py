@@ -172,7 +172,7 @@ def test_yaw_about_edges_turns_about_the_edges_median_point():
     q = np.median(np.concatenate([transform_points(X, v.edges) for v in views]), axis=0)
     p_lidar = transform_points(np.linalg.inv(X), q[None])[0]
     assert np.linalg.norm(transform_points(Xr, p_lidar[None])[0] - q) < 1e-9
-    # the edges far from that point move; the board silhouettes then miss the image edges
+    # the pivot is not the camera centre: the translation changes with the yaw
     assert np.linalg.norm(Xr[:3, 3] - X[:3, 3]) > 0.01
 
 

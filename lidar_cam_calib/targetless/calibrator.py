@@ -727,8 +727,11 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             metrics.update({"edge_points": pe.n_points, "edge_views": pe.n_views, "edge_cost0_px": pe.cost0,
                             "edge_cost_px": pe.cost, "edge_inliers0": pe.inliers0, "edge_inliers": pe.inliers,
                             "edge_dispersion": pe.dispersion,
-                            "edge_delta_rot_deg": float(np.degrees(np.linalg.norm(pe.xi[:3]))),
-                            "edge_delta_norm_m": float(np.linalg.norm(pe.xi[3:]))})
+                            # how far the edges moved the extrinsic from the clouds' estimate (the fit may
+                            # have started elsewhere: the coarse candidate's fit, a restart)
+                            "edge_delta_rot_deg": float(np.degrees(np.linalg.norm(
+                                so3_log(pe.T[:3, :3] @ T_final[:3, :3].T)))),
+                            "edge_delta_norm_m": float(np.linalg.norm(pe.T[:3, 3] - T_final[:3, 3]))})
             T_final = pe.T
             # the registered clouds' distances again, now through the refined extrinsic
             metrics["hausdorff_before_edges_m"] = metrics.get("hausdorff_m", float("nan"))
