@@ -141,8 +141,7 @@ class TargetlessConfig:
     ours_translation_floor_m: float = cfg_field(0.05, "ours: isotropic 1-sigma added to the translation (the "
                                                       "ICP information is over-confident across the street)",
                                                 range=(0.0, 5.0))
-    ours_ground_sigma_deg: float = cfg_field(0.3, "ours: 1-sigma of a ground normal (Wahba weight; the "
-                                                  "camera cloud's was measured 0.02-0.6 deg off)",
+    ours_ground_sigma_deg: float = cfg_field(0.1, "ours: 1-sigma of a ground normal (Wahba weight)",
                                              range=(0.001, 10.0))
     ours_coarse_candidates: int = cfg_field(12, "ours: bird's-eye translation peaks (1 m apart) ranked by the image "
                                                 "edges (1: the highest peak, as before)", range=(1, 50))
