@@ -132,5 +132,8 @@ def test_bev_translation_lists_the_peaks_of_a_repeating_street():
     assert min(np.linalg.norm(p[0] - t_true) for p in peaks) < 0.15
     assert all(np.linalg.norm(a[0] - b[0]) >= 1.0 for i, a in enumerate(peaks) for b in peaks[i + 1:])
     assert np.allclose(peaks[0][0], t)
-    # without n_peaks: the three-tuple as before
-    assert len(layered_bev_translation(tgt, src, 0.0, radius_m=7.0)) == 3
+    # without n_peaks: the same answer, and the list holds the best peak alone (the calibrator unpacks
+    # the same four values whatever it asks for: with one candidate it used to fail to unpack)
+    t1, _, ratio1, peaks1 = layered_bev_translation(tgt, src, 0.0, radius_m=7.0)
+    assert np.allclose(t1, t) and ratio1 == ratio
+    assert len(peaks1) == 1 and np.allclose(peaks1[0][0], t) and peaks1[0][1] == 1.0

@@ -173,6 +173,16 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     cal = collect(run, cfg)
     with pytest.raises(CalibError, match="LiDAR edges do not meet the image edges"):
         calibrate_window(cal.images, cal.sweeps, cfg)
+    # one coarse candidate (the highest bird's-eye peak, as the config documents) runs: no ranking, and the
+    # window is refused or accepted by its gates (it used to fail unpacking the peak search's result)
+    from lidar_cam_calib.targetless.calibrator import WindowDiagnostics
+    diag = WindowDiagnostics()
+    try:
+        calibrate_window(cal.images, cal.sweeps, dataclasses.replace(cfg, ours_min_edge_inliers=0.5,
+                                                                     ours_coarse_candidates=1), diag)
+    except CalibError:
+        pass
+    assert diag.T_pre_edge is not None and diag.coarse_candidates == []
 
 
 def test_predicted_projection_error_matches_sampled_errors():

@@ -284,17 +284,16 @@ __all__ = ["AlignConfig", "HoughResult", "IcpResult", "compatible_pairs", "estim
 def layered_bev_translation(target: np.ndarray, source: np.ndarray, yaw: float, cell_m: float = 0.1,
                             radius_m: float = 6.0, z_range: tuple = (0.3, 5.0), layer_m: float = 0.3,
                             extent_m: float = 30.0, dilate: int = 1, n_peaks: int = 1,
-                            centre: np.ndarray | None = None
-                            ) -> tuple[np.ndarray, float, float] | tuple[np.ndarray, float, float, list]:
+                            centre: np.ndarray | None = None) -> tuple[np.ndarray, float, float, list]:
     """Horizontal translation of ``Rz(yaw) source`` onto ``target`` (levelled clouds, ground at z = 0)
     by FFT cross-correlation of bird's-eye occupancy grids per height layer, summed over the layers
     (a 3D correlation with no vertical shift: both clouds stand on the same ground). The target grid
     is dilated by ``dilate`` cells (its points are sparse rings), the source is binary occupancy. The
     search covers ``radius_m`` about ``centre`` (horizontal, default the origin).
     Returns (t (3,), the fraction of occupied source cells that hit, peak ratio: best score over the
-    best score farther than 1 m from the peak); with ``n_peaks`` > 1 also the list of up to that many
-    local peaks [(t (3,), score over the best score)], best first, each farther than 1 m from the
-    others (for a caller that ranks them by other evidence)."""
+    best score farther than 1 m from the peak, the list of up to ``n_peaks`` local peaks [(t (3,), score
+    over the best score)], best first, each farther than 1 m from the others (for a caller that ranks
+    them by other evidence; the first is ``t``))."""
     n = int(np.ceil(2 * extent_m / cell_m))
     nz = int(np.ceil((z_range[1] - z_range[0]) / layer_m))
 
@@ -329,11 +328,9 @@ def layered_bev_translation(target: np.ndarray, source: np.ndarray, yaw: float, 
     mask[max(0, i - k):i + k + 1, max(0, j - k):j + k + 1] = False
     second = float(sub[mask].max()) if np.any(mask) else 0.0
     t = np.array([sh_i[i] * cell_m, sh_j[j] * cell_m, 0.0])
-    if n_peaks <= 1:
-        return t, best / tot, best / max(second, 1e-9)
     peaks = []
     rest = sub.copy()
-    for _ in range(n_peaks):
+    for _ in range(max(n_peaks, 1)):
         a, b = np.unravel_index(int(np.argmax(rest)), rest.shape)
         if not np.isfinite(rest[a, b]) or rest[a, b] <= 0:
             break
