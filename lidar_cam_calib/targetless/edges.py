@@ -36,7 +36,7 @@ import numpy as np
 
 from ..core.calibrator import cfg_field
 from ..core.camera import CameraModel
-from ..core.geometry import inv_T, transform_points
+from ..core.geometry import inv_T, so3_exp, transform_points
 
 
 @dataclasses.dataclass
@@ -312,7 +312,6 @@ def yaw_about_edges(views: list, X: np.ndarray, up: np.ndarray, deg: float) -> n
     views' LiDAR edges (camera frame, from ``prepare_view``): the bulk of the edges stays put while near
     and far ones move apart. A yaw and a lateral shift trade off along that valley of the edge fit, so
     starts along it reach minima a single start misses."""
-    from ..core.geometry import so3_exp
     q = [transform_points(X @ inv_T(v.T_sweep_img), v.edges) for v in views if v.edges is not None]
     c0 = np.median(np.concatenate(q), axis=0) if q else np.zeros(3)
     u = np.asarray(up, float) / max(np.linalg.norm(up), 1e-12)
@@ -408,7 +407,6 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     ``up`` (camera frame): with ``tilt_prior_deg`` > 0, priors on the two rotations about the horizontal
     axes (and with ``height_prior_m`` > 0 on the translation along ``up``) around the start; with
     ``tilt_prior_deg`` = 0, only the yaw about ``up`` and the translation are fitted (4 DoF)."""
-    from ..core.geometry import so3_exp
     cfg = cfg or EdgeConfig()
     K = cam.K
     V = []
