@@ -225,6 +225,9 @@ class WindowDiagnostics:
     T_pre_edge: np.ndarray | None = None
     edge_pose: object = None
     coarse_candidates: list = dataclasses.field(default_factory=list)  # ours: [(T, edge fit)], BEV order
+    # the gate's registered overlap: LiDAR points (reference sweep, de-skewed), the levelled camera cloud, its
+    # KD-tree, normals and per-point depth sigma, the levelling Ls and T_sweep_img (for distances at any T)
+    registered: dict = dataclasses.field(default_factory=dict)
     timings_s: dict = dataclasses.field(default_factory=dict)
     metrics: dict = dataclasses.field(default_factory=dict)
 
@@ -684,6 +687,8 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         raise CalibError(f"gate failed: only {int(ok.sum())} LiDAR points lie on the camera cloud after "
                          "registration; calibration rejected")
     metrics.update(dist_m)
+    diag.registered = {"points": lid[in_r], "static": static_pts[in_r], "tree": tree, "cloud": cs, "normals": nrm,
+                       "sigma": sig_s, "Ls": Ls, "T_sweep_img": T_sweep_img}
     # -- final PnP (the paper: object centroids through the chain; ours: every overlapping point)
     t4 = time.perf_counter()
     if solver in ("paper", "ours"):

@@ -4,7 +4,8 @@ Mask R-CNN / PointPillars weights cannot be used here, so dynamic objects are
 found by motion consistency instead:
 
 * :func:`lidar_odometry`: scan-to-scan point-to-plane ICP between consecutive
-  sweeps (voxel-subsampled, constant-velocity start), giving the LiDAR pose of
+  sweeps (voxel-subsampled; started from constant velocity, from rest and from
+  the neighbouring links, the best-fitting kept), giving the LiDAR pose of
   every sweep in the first sweep's frame. Metric, so it also fixes the SfM
   scale (:func:`metric_scale`).
 * :func:`dynamic_points`: after ego-motion compensation, a point of the
@@ -49,9 +50,40 @@ def _crop(p: np.ndarray, max_range_m: float, min_range_m: float = 1.5) -> np.nda
     return p[(r < max_range_m) & (r > min_range_m) & np.all(np.isfinite(p), axis=1)]
 
 
+def _link_fit(src: np.ndarray, tgt: np.ndarray, tree: cKDTree, nrm: np.ndarray, T0: np.ndarray, cfg: AlignConfig,
+              inlier_m: float):
+    """ICP of one odometry link from ``T0``, continued from its own result (the correspondence radius
+    reset) while it still moves by more than 5 cm: the radius shrinks every 5 iterations, so one run
+    from a start 1-2 m off stops half way. Returns (IcpResult, score: source points within ``inlier_m``
+    of the target's planes (nearest neighbour within 1 m) at the result), or (None, -1)."""
+    best, T = None, T0
+    for _ in range(4):
+        try:
+            r = icp_point_to_plane(src, tgt, T, cfg, dst_tree=tree, dst_normals=nrm)
+        except CalibError:
+            break
+        moved = float(np.linalg.norm(r.T[:3, 3] - T[:3, 3]))
+        best, T = r, r.T
+        if moved < 0.05:
+            break
+    if best is None:
+        return None, -1
+    q = src @ best.T[:3, :3].T + best.T[:3, 3]
+    d, nn = tree.query(q, k=1, distance_upper_bound=1.0)
+    ok = np.isfinite(d)
+    pl = np.abs(np.einsum("ij,ij->i", q[ok] - tgt[nn[ok]], nrm[nn[ok]]))
+    return best, int((pl < inlier_m).sum())
+
+
 def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0, iterations: int = 20,
-                   min_dist_m: float = 0.3, raw_points: int = 0) -> tuple[np.ndarray, list]:
+                   min_dist_m: float = 0.3, raw_points: int = 0, inlier_m: float = 0.1) -> tuple[np.ndarray, list]:
     """Poses (K,4,4) ``T_first_k`` of every sweep and the per-link ICP results.
+
+    Each link is fitted from the constant-velocity start and from rest, then (a backward and a forward
+    pass) from both neighbouring links' results; the fit with the most source points within
+    ``inlier_m`` of the target's planes is kept. At speed (1-2 m per sweep) the first link, which has no
+    velocity to start from, otherwise stops in the street's along-track valley near rest and every later
+    pose, the metric scale and the de-skew inherit it.
 
     ``raw_points > 0``: no voxel means (a fixed voxel grid in each sweep's own frame aliases the moving
     ring pattern and biases the travelled distance by up to ~1 %); the target is the raw sweep and the
@@ -66,30 +98,44 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
     else:
         down = [voxel_down(_crop(np.asarray(c, float), max_range_m), voxel_m) for c in clouds]
         subs = down
-    poses = [np.eye(4)]
-    links = []
-    vel = np.eye(4)
+    trees = []
     for k in range(1, len(clouds)):
         tgt, src = down[k - 1], subs[k]
         if tgt.shape[0] < 100 or src.shape[0] < 100:
             raise CalibError(f"LiDAR odometry: sweep {k} has only {src.shape[0]} usable points")
         tree = cKDTree(tgt)
-        nrm, _ = estimate_normals(tgt, tree)
-        best = None
+        trees.append((tree, estimate_normals(tgt, tree)[0]))
+    links, scores = [], []
+    vel = np.eye(4)
+    for k in range(1, len(clouds)):
+        tree, nrm = trees[k - 1]
+        best, score = None, -1
         for T0 in (vel, np.eye(4)):
-            try:
-                r = icp_point_to_plane(src, tgt, T0, cfg, dst_tree=tree, dst_normals=nrm)
-            except CalibError:
-                continue
-            if best is None or r.n_corr * 1.0 / max(r.rms_m, 1e-3) > best.n_corr / max(best.rms_m, 1e-3):
-                best = r
-            if r.n_corr > 0.5 * src.shape[0]:
-                break
+            r, sc = _link_fit(subs[k], down[k - 1], tree, nrm, T0, cfg, inlier_m)
+            if sc > score:
+                best, score = r, sc
+            if k > 1 and score >= 0.8 * subs[k].shape[0]:
+                break  # the constant-velocity start fits: no need to try rest
         if best is None:
             raise CalibError(f"LiDAR odometry failed between sweeps {k - 1} and {k}: the scans do not overlap")
         links.append(best)
+        scores.append(score)
         vel = best.T
-        poses.append(poses[-1] @ best.T)
+    # the neighbours' motion as a start (backward, then forward): a link stuck near rest between two that
+    # moved is refitted from their motion
+    n = len(links)
+    for order, nb in ((range(n - 2, -1, -1), 1), (range(1, n), -1)):
+        for k in order:
+            T0 = links[k + nb].T
+            if np.linalg.norm(T0[:3, 3] - links[k].T[:3, 3]) < 0.05:
+                continue
+            tree, nrm = trees[k]
+            r, sc = _link_fit(subs[k + 1], down[k], tree, nrm, T0, cfg, inlier_m)
+            if r is not None and sc > scores[k]:
+                links[k], scores[k] = r, sc
+    poses = [np.eye(4)]
+    for r in links:
+        poses.append(poses[-1] @ r.T)
     return np.array(poses), links
 
 
