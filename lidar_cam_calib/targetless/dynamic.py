@@ -50,12 +50,44 @@ def _crop(p: np.ndarray, max_range_m: float, min_range_m: float = 1.5) -> np.nda
     return p[(r < max_range_m) & (r > min_range_m) & np.all(np.isfinite(p), axis=1)]
 
 
+def _bev_start(src: np.ndarray, src_n: np.ndarray, tgt: np.ndarray, tgt_n: np.ndarray, radius_m: float = 4.0,
+               cell_m: float = 0.2, extent_m: float = 30.0) -> np.ndarray:
+    """A start for one link from nothing but the two sweeps: the horizontal shift that best overlays
+    their upright surfaces (normals within 45 deg of horizontal: poles, trunks, cars, facades) seen from
+    above, by FFT cross-correlation of occupancy grids within ``radius_m`` (a car at 140 km/h moves
+    3.9 m per 0.1 s sweep). The ground and its sensor-fixed rings are left out."""
+    n = int(np.ceil(2 * extent_m / cell_m))
+
+    def grid(p, nr, dil):
+        m = (np.abs(nr[:, 2]) < 0.7) & (np.abs(p[:, 0]) < extent_m) & (np.abs(p[:, 1]) < extent_m)
+        g = np.zeros((n, n), np.float32)
+        ij = np.floor((p[m, :2] + extent_m) / cell_m).astype(int)
+        g[ij[:, 0], ij[:, 1]] = 1.0
+        if dil:
+            from scipy import ndimage
+            g = ndimage.grey_dilation(g, size=(3, 3))
+        return g
+    Gt, Gs = grid(tgt, tgt_n, 1), grid(src, src_n, 0)
+    if Gs.sum() < 20 or Gt.sum() < 20:
+        return np.eye(4)
+    corr = np.fft.irfft2(np.fft.rfft2(Gt, s=(2 * n, 2 * n)) * np.conj(np.fft.rfft2(Gs, s=(2 * n, 2 * n))),
+                         s=(2 * n, 2 * n))
+    r = int(np.ceil(radius_m / cell_m))
+    sh = np.arange(-r, r + 1)
+    sub = corr[np.ix_(sh % (2 * n), sh % (2 * n))]
+    i, j = np.unravel_index(int(np.argmax(sub)), sub.shape)
+    return make_T(np.eye(3), np.array([sh[i] * cell_m, sh[j] * cell_m, 0.0]))
+
+
 def _link_fit(src: np.ndarray, tgt: np.ndarray, tree: cKDTree, nrm: np.ndarray, T0: np.ndarray, cfg: AlignConfig,
               inlier_m: float):
     """ICP of one odometry link from ``T0``, continued from its own result (the correspondence radius
     reset) while it still moves by more than 5 cm: the radius shrinks every 5 iterations, so one run
     from a start 1-2 m off stops half way. Returns (IcpResult, score: source points within ``inlier_m``
-    of the target's planes (nearest neighbour within 1 m) at the result), or (None, -1)."""
+    of the target's upright surfaces (normals within 45 deg of horizontal; nearest neighbour within 1 m)
+    at the result), or (None, -1). The ground does not score: its rings move with the sensor, so at rest
+    they meet their previous selves while at the true motion the far rings fall between the previous
+    ones."""
     best, T = None, T0
     for _ in range(4):
         try:
@@ -71,6 +103,7 @@ def _link_fit(src: np.ndarray, tgt: np.ndarray, tree: cKDTree, nrm: np.ndarray, 
     q = src @ best.T[:3, :3].T + best.T[:3, 3]
     d, nn = tree.query(q, k=1, distance_upper_bound=1.0)
     ok = np.isfinite(d)
+    ok[ok] = np.abs(nrm[nn[ok], 2]) < 0.7
     pl = np.abs(np.einsum("ij,ij->i", q[ok] - tgt[nn[ok]], nrm[nn[ok]]))
     return best, int((pl < inlier_m).sum())
 
@@ -79,9 +112,10 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
                    min_dist_m: float = 0.3, raw_points: int = 0, inlier_m: float = 0.1) -> tuple[np.ndarray, list]:
     """Poses (K,4,4) ``T_first_k`` of every sweep and the per-link ICP results.
 
-    Each link is fitted from the constant-velocity start and from rest, then (a backward and a forward
-    pass) from both neighbouring links' results; the fit with the most source points within
-    ``inlier_m`` of the target's planes is kept. At speed (1-2 m per sweep) the first link, which has no
+    Each link is fitted from the constant-velocity start, from rest and from the horizontal shift that
+    overlays the two sweeps' upright surfaces seen from above (:func:`_bev_start`), then (a backward and
+    a forward pass) from both neighbouring links' results; the fit with the most source points within
+    ``inlier_m`` of the target's upright surfaces is kept. At speed (1-2 m per sweep) the first link, which has no
     velocity to start from, otherwise stops in the street's along-track valley near rest and every later
     pose, the metric scale and the de-skew inherit it.
 
@@ -98,24 +132,26 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
     else:
         down = [voxel_down(_crop(np.asarray(c, float), max_range_m), voxel_m) for c in clouds]
         subs = down
-    trees = []
-    for k in range(1, len(clouds)):
-        tgt, src = down[k - 1], subs[k]
-        if tgt.shape[0] < 100 or src.shape[0] < 100:
-            raise CalibError(f"LiDAR odometry: sweep {k} has only {src.shape[0]} usable points")
-        tree = cKDTree(tgt)
-        trees.append((tree, estimate_normals(tgt, tree)[0]))
+    trees, normals = [], []
+    for k, d in enumerate(down):
+        if d.shape[0] < 100 or subs[k].shape[0] < 100:
+            raise CalibError(f"LiDAR odometry: sweep {k} has only {subs[k].shape[0]} usable points")
+        tree = cKDTree(d)
+        trees.append(tree)
+        normals.append(estimate_normals(d, tree)[0])
     links, scores = [], []
     vel = np.eye(4)
     for k in range(1, len(clouds)):
-        tree, nrm = trees[k - 1]
+        tree, nrm = trees[k - 1], normals[k - 1]
         best, score = None, -1
-        for T0 in (vel, np.eye(4)):
+        starts = [vel, np.eye(4)]
+        Tb = _bev_start(down[k], normals[k], down[k - 1], nrm)
+        if min(np.linalg.norm(Tb[:3, 3] - T0[:3, 3]) for T0 in starts) > 0.3:
+            starts.append(Tb)
+        for T0 in starts:
             r, sc = _link_fit(subs[k], down[k - 1], tree, nrm, T0, cfg, inlier_m)
             if sc > score:
                 best, score = r, sc
-            if k > 1 and score >= 0.8 * subs[k].shape[0]:
-                break  # the constant-velocity start fits: no need to try rest
         if best is None:
             raise CalibError(f"LiDAR odometry failed between sweeps {k - 1} and {k}: the scans do not overlap")
         links.append(best)
@@ -129,8 +165,7 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
             T0 = links[k + nb].T
             if np.linalg.norm(T0[:3, 3] - links[k].T[:3, 3]) < 0.05:
                 continue
-            tree, nrm = trees[k]
-            r, sc = _link_fit(subs[k + 1], down[k], tree, nrm, T0, cfg, inlier_m)
+            r, sc = _link_fit(subs[k + 1], down[k], trees[k], normals[k], T0, cfg, inlier_m)
             if r is not None and sc > scores[k]:
                 links[k], scores[k] = r, sc
     poses = [np.eye(4)]
