@@ -192,10 +192,31 @@ def test_edge_restarts_leave_a_side_minimum_along_the_yaw_valley():
     Xbad = yaw_about_edges(views, X, up, 0.8)
     at = refine_pose(views, cam, Xbad, cfg.edges, up=up, tilt_prior_deg=0.3)
     stuck = dataclasses.replace(at, T=Xbad, inliers=at.inliers0)  # as if the fit had stopped there
-    best, taken = _edge_restarts(views, cam, stuck, np.eye(4), link, cfg)
+    best, taken = _edge_restarts(views, cam, stuck, np.eye(4), link, cfg, Xbad)
     assert taken != 0.0 and best.inliers >= stuck.inliers + 0.01
     rot_deg, _ = pose_errors(best.T, X)
     assert rot_deg < 0.1 and np.linalg.norm(best.T[:3, 3] - X[:3, 3]) < 0.02, (rot_deg, best.T[:3, 3] - X[:3, 3])
     good = refine_pose(views, cam, X, cfg.edges, up=up, tilt_prior_deg=0.3)
-    kept, taken = _edge_restarts(views, cam, good, np.eye(4), link, cfg)
+    kept, taken = _edge_restarts(views, cam, good, np.eye(4), link, cfg, X)
     assert taken == 0.0 and kept is good
+
+
+def test_tilt_prior_stays_at_its_centre_when_the_start_moves():
+    """A start tilted 0.6 deg about a horizontal axis: with the prior about the start (the default) a tight
+    tilt prior holds the tilt there; with the prior about the ground planes' estimate (here the truth),
+    the fit comes back to it. Restarts from a fit's own result pass the clouds' estimate as the centre,
+    so the tilt cannot creep by one prior width per restart."""
+    import dataclasses
+    from lidar_cam_calib.core.geometry import so3_exp
+    from lidar_cam_calib.targetless.edges import EdgeConfig
+    cam, X, views = _views()
+    ecfg = dataclasses.replace(EdgeConfig(), min_points=50)
+    up = X[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    side = np.cross(up, X[:3, :3] @ np.array([1.0, 0.0, 0.0]))
+    Xt = X.copy()
+    Xt[:3, :3] = so3_exp(np.radians(0.6) * side / np.linalg.norm(side)) @ X[:3, :3]
+    held = refine_pose(views, cam, Xt, ecfg, up=up, tilt_prior_deg=0.02)
+    back = refine_pose(views, cam, Xt, ecfg, up=up, tilt_prior_deg=0.02, prior_centre=X)
+    r_held, _ = pose_errors(held.T, X)
+    r_back, _ = pose_errors(back.T, X)
+    assert r_held > 0.4 and r_back < 0.1, (r_held, r_back)

@@ -406,24 +406,27 @@ def _rank_fit(views: list, cam, X: np.ndarray, Ll: np.ndarray, T_link: np.ndarra
     return f
 
 
-def _edge_fit(views: list, cam, X: np.ndarray, axes: tuple, cfg: TargetlessConfig):
-    """The 6-DoF edge fit from ``X`` with the ground-plane priors on the tilt and the height; ``axes``:
-    (driving direction, up) in the camera frame (``_drive_axes``)."""
+def _edge_fit(views: list, cam, X: np.ndarray, axes: tuple, cfg: TargetlessConfig, centre: np.ndarray):
+    """The 6-DoF edge fit from ``X`` with the ground-plane priors on the tilt and the height about
+    ``centre`` (the clouds' estimate, whatever the start); ``axes``: (driving direction, up) in the camera
+    frame (``_drive_axes``)."""
     d, up = axes
     return refine_pose(views, cam, X, cfg.edges, direction=d, up=up, tilt_prior_deg=cfg.ours_edge_tilt_prior_deg,
-                       height_prior_m=cfg.ours_edge_height_prior_m)
+                       height_prior_m=cfg.ours_edge_height_prior_m, prior_centre=centre)
 
 
-def _edge_restarts(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg: TargetlessConfig):
+def _edge_restarts(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg: TargetlessConfig,
+                   centre: np.ndarray):
     """(fit, the restart's yaw in deg, 0 for none): the 6-DoF edge fit ``pe`` restarted from its result
     turned by -2, -1, 1, 2 times ``ours_edge_restart_yaw_deg`` about the edges' median point. Along that
     valley a yaw and a lateral shift trade off and a single start can stop in a side minimum; a restart
-    replaces the fit only when its inlier fraction is ``ours_edge_restart_min_gain`` higher."""
+    replaces the fit only when its inlier fraction is ``ours_edge_restart_min_gain`` higher. The tilt and
+    height priors stay about ``centre`` (the clouds' estimate)."""
     axes = _drive_axes(pe.T, Ll, T_link)
     best, taken = pe, 0.0
     for k in (-2, -1, 1, 2):
         a = k * cfg.ours_edge_restart_yaw_deg
-        r = _edge_fit(views, cam, yaw_about_edges(views, pe.T, axes[1], a), axes, cfg)
+        r = _edge_fit(views, cam, yaw_about_edges(views, pe.T, axes[1], a), axes, cfg, centre)
         if r is not None and r.inliers >= best.inliers + cfg.ours_edge_restart_min_gain:
             best, taken = r, a
     return best, taken
@@ -719,16 +722,17 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     diag.T_pre_edge = T_final
     if views:
         t5 = time.perf_counter()
-        pe = _edge_fit(views, cam, T_final, _drive_axes(T_final, Ll, link.T), cfg)
+        # the tilt and height priors (ground planes) stay about the clouds' estimate for every start
+        pe = _edge_fit(views, cam, T_final, _drive_axes(T_final, Ll, link.T), cfg, T_final)
         if coarse_fit is not None:
             # the edges chose the coarse translation: their own fit from it is a second start (the clouds'
             # ICP may have slid away from it along the street)
-            pe2 = _edge_fit(views, cam, coarse_fit.T, _drive_axes(coarse_fit.T, Ll, link.T), cfg)
+            pe2 = _edge_fit(views, cam, coarse_fit.T, _drive_axes(coarse_fit.T, Ll, link.T), cfg, T_final)
             if pe2 is not None and (pe is None or pe2.inliers > pe.inliers):
                 pe = pe2
                 metrics["edge_from_coarse_fit"] = 1
         if pe is not None and cfg.ours_edge_restart_yaw_deg > 0:
-            pe, metrics["edge_restart_yaw_deg"] = _edge_restarts(views, cam, pe, Ll, link.T, cfg)
+            pe, metrics["edge_restart_yaw_deg"] = _edge_restarts(views, cam, pe, Ll, link.T, cfg, T_final)
         diag.edge_pose = pe
         tm["edges"] = time.perf_counter() - t5
         if pe is not None:

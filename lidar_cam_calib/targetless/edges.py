@@ -36,7 +36,7 @@ import numpy as np
 
 from ..core.calibrator import cfg_field
 from ..core.camera import CameraModel
-from ..core.geometry import inv_T, so3_exp, transform_points
+from ..core.geometry import inv_T, so3_exp, so3_log, transform_points
 
 
 @dataclasses.dataclass
@@ -391,7 +391,8 @@ def _scale(Hs: list, gs: list, naive: float, m: int) -> float:
 
 def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | None = None,
                 direction: np.ndarray | None = None, up: np.ndarray | None = None,
-                tilt_prior_deg: float = 0.0, height_prior_m: float = 0.0) -> PoseEdgeResult | None:
+                tilt_prior_deg: float = 0.0, height_prior_m: float = 0.0,
+                prior_centre: np.ndarray | None = None) -> PoseEdgeResult | None:
     """All six degrees of freedom of the extrinsic ``X`` (camera <- LiDAR at the exposure) from the
     LiDAR edges of each view's own sweep against that view's image edges.
 
@@ -405,7 +406,9 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     None when too few edges are seen.
 
     ``up`` (camera frame): with ``tilt_prior_deg`` > 0, priors on the two rotations about the horizontal
-    axes (and with ``height_prior_m`` > 0 on the translation along ``up``) around the start; with
+    axes (and with ``height_prior_m`` > 0 on the translation along ``up``) around ``prior_centre`` (an
+    extrinsic; default the start ``X``: a restart from a fit's own result must keep the prior where the
+    ground planes put it, or each restart lets the tilt drift by another prior width); with
     ``tilt_prior_deg`` = 0, only the yaw about ``up`` and the translation are fitted (4 DoF)."""
     cfg = cfg or EdgeConfig()
     K = cam.K
@@ -440,6 +443,10 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         if height_prior_m > 0:  # the height along the up axis (silhouettes are vertical: they do not see it)
             Pt[3:, 3:] = np.outer(u, u) / height_prior_m ** 2
     P = np.zeros((6, 6))
+    xc = np.zeros(6)  # the prior's centre as a left perturbation of X
+    if prior_centre is not None:
+        Rc = prior_centre[:3, :3] @ X[:3, :3].T
+        xc = np.concatenate([so3_log(Rc), prior_centre[:3, 3] - Rc @ X[:3, 3]])
 
     def apply(xi, q):
         R = so3_exp(xi[:3])
@@ -460,7 +467,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         return out
 
     def cost(xi, r, c):  # Cauchy loss of the residuals plus the prior
-        return float(0.5 * c * c * np.sum(np.log1p((r / c) ** 2)) + 0.5 * xi @ P @ xi)
+        return float(0.5 * c * c * np.sum(np.log1p((r / c) ** 2)) + 0.5 * (xi - xc) @ P @ (xi - xc))
 
     def lm(xi, fields, c, iters=25):
         lam = 1e-3
@@ -471,7 +478,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
             w = 1.0 / (1.0 + (r / c) ** 2)
             Pm = B.T @ P @ B
             H = J.T @ (J * w[:, None]) + Pm
-            g = J.T @ (w * r) + B.T @ (P @ xi)
+            g = J.T @ (w * r) + B.T @ (P @ (xi - xc))
             f0 = cost(xi, r, c)
             improved = False
             for _ in range(8):
