@@ -180,6 +180,10 @@ class TargetlessConfig:
     ours_edge_restart_min_gain: float = cfg_field(0.01, "ours, pose mode: a restart replaces the fit only when its "
                                                         "inlier fraction is higher by at least this",
                                                   range=(0.0, 1.0))
+    ours_edge_jackknife: bool = cfg_field(True, "ours, pose mode: the covariance is at least the leave-one-image-out "
+                                                "(jackknife) spread of the edge fit, refitted without each image "
+                                                "in turn (it sees a flat or two-basin objective that the "
+                                                "linearised per-image dispersion does not)")
     ours_min_edge_inliers: float = cfg_field(0.5, "ours, pose mode, gate: fewest LiDAR edge points within 1.5 px "
                                                   "of an image edge after the refinement (a fraction)",
                                              range=(0.0, 1.0))
@@ -430,6 +434,32 @@ def _edge_restarts(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg
         if r is not None and r.inliers >= best.inliers + cfg.ours_edge_restart_min_gain:
             best, taken = r, a
     return best, taken
+
+
+def _jackknife_cov(views: list, cam, pe, axes: tuple, cfg: TargetlessConfig, centre: np.ndarray):
+    """(6x6 jackknife covariance of the edge fit ``pe`` in its left-perturbation convention, number of
+    refits) from the fit refitted without each view in turn (from ``pe.T``, the same priors); None when
+    fewer than 4 refits have edges."""
+    xs = []
+    for i in range(len(views)):
+        r = _edge_fit(views[:i] + views[i + 1:], cam, pe.T, axes, cfg, centre)
+        if r is not None:
+            R = r.T[:3, :3] @ pe.T[:3, :3].T
+            xs.append(np.concatenate([so3_log(R), r.T[:3, 3] - R @ pe.T[:3, 3]]))
+    if len(xs) < 4:
+        return None, len(xs)
+    x = np.array(xs)
+    d = x - x.mean(axis=0)
+    return (len(xs) - 1) / len(xs) * d.T @ d, len(xs)
+
+
+def cov_upper(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """The covariance that is at least ``A`` and at least ``B`` along every direction: ``A`` stretched along
+    the directions where ``B`` is larger (eigenvalues of ``B`` whitened by ``A`` clamped at >= 1)."""
+    L = np.linalg.cholesky(A)
+    Li = np.linalg.inv(L)
+    w, V = np.linalg.eigh(Li @ B @ Li.T)
+    return L @ (V * np.maximum(w, 1.0)) @ V.T @ L.T
 
 
 def _rank_candidates(fits: list, same_m: float = 0.5) -> tuple[int | None, float]:
@@ -733,6 +763,18 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                 metrics["edge_from_coarse_fit"] = 1
         if pe is not None and cfg.ours_edge_restart_yaw_deg > 0:
             pe, metrics["edge_restart_yaw_deg"] = _edge_restarts(views, cam, pe, Ll, link.T, cfg, T_final)
+        if pe is not None and cfg.ours_edge_jackknife:
+            cj, n_jk = _jackknife_cov(views, cam, pe, _drive_axes(pe.T, Ll, link.T), cfg, T_final)
+            metrics["edge_jackknife_refits"] = n_jk
+            if cj is not None:
+                try:
+                    c_up = cov_upper(pe.cov, cj)
+                    # how much the jackknife widened the fit's own covariance (largest sigma ratio)
+                    metrics["edge_jackknife_inflation"] = float(np.sqrt(max(np.linalg.eigvals(
+                        np.linalg.solve(pe.cov, c_up)).real.max(), 1.0)))
+                    pe = dataclasses.replace(pe, cov=c_up)
+                except np.linalg.LinAlgError:
+                    pass
         diag.edge_pose = pe
         tm["edges"] = time.perf_counter() - t5
         if pe is not None:
