@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from ..core.errors import CalibError
 from ..core.geometry import inv_T, make_T, so3_exp, so3_log
-from .align import AlignConfig, estimate_normals, icp_point_to_plane
+from .align import AlignConfig, estimate_normals, icp_point_to_plane, layered_bev_translation
 
 
 def voxel_down(p: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -51,32 +51,20 @@ def _crop(p: np.ndarray, max_range_m: float, min_range_m: float = 1.5) -> np.nda
 
 
 def _bev_start(src: np.ndarray, src_n: np.ndarray, tgt: np.ndarray, tgt_n: np.ndarray, radius_m: float = 4.0,
-               cell_m: float = 0.2, extent_m: float = 30.0) -> np.ndarray:
+               cell_m: float = 0.2) -> np.ndarray:
     """A start for one link from nothing but the two sweeps: the horizontal shift that best overlays
     their upright surfaces (normals within 45 deg of horizontal: poles, trunks, cars, facades) seen from
-    above, by FFT cross-correlation of occupancy grids within ``radius_m`` (a car at 140 km/h moves
-    3.9 m per 0.1 s sweep). The ground and its sensor-fixed rings are left out."""
-    n = int(np.ceil(2 * extent_m / cell_m))
-
-    def grid(p, nr, dil):
-        m = (np.abs(nr[:, 2]) < 0.7) & (np.abs(p[:, 0]) < extent_m) & (np.abs(p[:, 1]) < extent_m)
-        g = np.zeros((n, n), np.float32)
-        ij = np.floor((p[m, :2] + extent_m) / cell_m).astype(int)
-        g[ij[:, 0], ij[:, 1]] = 1.0
-        if dil:
-            from scipy import ndimage
-            g = ndimage.grey_dilation(g, size=(3, 3))
-        return g
-    Gt, Gs = grid(tgt, tgt_n, 1), grid(src, src_n, 0)
-    if Gs.sum() < 20 or Gt.sum() < 20:
+    above (:func:`layered_bev_translation` with a single height layer), within ``radius_m`` (a car at
+    140 km/h moves 3.9 m per 0.1 s sweep). The ground and its sensor-fixed rings are left out."""
+    s, t = src[np.abs(src_n[:, 2]) < 0.7], tgt[np.abs(tgt_n[:, 2]) < 0.7]
+    if s.shape[0] < 20 or t.shape[0] < 20:
         return np.eye(4)
-    corr = np.fft.irfft2(np.fft.rfft2(Gt, s=(2 * n, 2 * n)) * np.conj(np.fft.rfft2(Gs, s=(2 * n, 2 * n))),
-                         s=(2 * n, 2 * n))
-    r = int(np.ceil(radius_m / cell_m))
-    sh = np.arange(-r, r + 1)
-    sub = corr[np.ix_(sh % (2 * n), sh % (2 * n))]
-    i, j = np.unravel_index(int(np.argmax(sub)), sub.shape)
-    return make_T(np.eye(3), np.array([sh[i] * cell_m, sh[j] * cell_m, 0.0]))
+    try:
+        shift = layered_bev_translation(t, s, 0.0, cell_m=cell_m, radius_m=radius_m, z_range=(-1e3, 1e3),
+                                        layer_m=2e3)[0]
+    except CalibError:
+        return np.eye(4)
+    return make_T(np.eye(3), shift)
 
 
 def _link_fit(src: np.ndarray, tgt: np.ndarray, tree: cKDTree, nrm: np.ndarray, T0: np.ndarray, cfg: AlignConfig,
