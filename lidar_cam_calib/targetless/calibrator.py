@@ -72,7 +72,7 @@ from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
-from .edges import EdgeConfig, EdgeView, proj_jacobian, refine_pose, refine_translation, yaw_about_edges
+from .edges import EdgeConfig, EdgeView, refine_pose, refine_translation, yaw_about_edges
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, point_motion,
                       voxel_down)
 from .frame import CameraFrame, LidarSweep
