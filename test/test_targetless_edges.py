@@ -258,3 +258,34 @@ def test_jackknife_sees_images_that_disagree():
             assert sd_jk < sd_lin, (sd_jk, sd_lin)
         else:
             assert sd_jk > 2 * sd_lin, (sd_jk, sd_lin)
+
+
+def test_edge_basins_widen_the_covariance_towards_an_equally_good_basin():
+    """The basin starts (clouds' estimate moved along the drive and sideways) come back to within 2 cm
+    of the truth on a well-posed scene: the spread they give stays below 2.5 cm. A result 8 cm off
+    sideways that meets the edges as well as the truth (a second basin) is kept, but the covariance it
+    gets spans the truth; one that meets them clearly worse is replaced by the start's fit at the truth."""
+    import dataclasses
+    from lidar_cam_calib.targetless.calibrator import TargetlessConfig, _drive_axes, _edge_basins, _edge_fit
+    from lidar_cam_calib.targetless.edges import prepare_view
+    cam, X, views = _views()
+    cfg = TargetlessConfig()
+    cfg = dataclasses.replace(cfg, edges=dataclasses.replace(cfg.edges, min_points=50))
+    for v in views:
+        prepare_view(v, cfg.edges)
+    link = make_T(np.eye(3), np.array([1.0, 0.0, 0.0]))
+    good = _edge_fit(views, cam, X, _drive_axes(X, np.eye(4), link), cfg, X)
+    best, S, n, starts = _edge_basins(views, cam, good, np.eye(4), link, cfg, X)
+    assert starts == 6 and n >= 4 and np.linalg.norm(best.T[:3, 3] - X[:3, 3]) < 0.02
+    assert np.sqrt(np.linalg.eigvalsh(S[3:, 3:]).max()) < 0.025
+    good = best
+    lateral = X[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    Xoff = X.copy()
+    Xoff[:3, 3] += 0.08 * lateral
+    twin = dataclasses.replace(good, T=Xoff)  # as good as the truth, 8 cm away
+    best, S2, n2, _ = _edge_basins(views, cam, twin, np.eye(4), link, cfg, X)
+    assert best is twin and n2 >= 2
+    assert lateral @ S2[3:, 3:] @ lateral > max(0.8 * 0.08 ** 2 / n2, 4 * lateral @ S[3:, 3:] @ lateral)
+    worse = dataclasses.replace(good, T=Xoff, inliers=good.inliers - 0.05)
+    best, _, _, _ = _edge_basins(views, cam, worse, np.eye(4), link, cfg, X)
+    assert best is not worse and np.linalg.norm(best.T[:3, 3] - X[:3, 3]) < 0.02
