@@ -521,6 +521,17 @@ def cov_upper(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return L @ (V * np.maximum(w, 1.0)) @ V.T @ L.T
 
 
+def _widen(pe, B: np.ndarray, metrics: dict, key: str):
+    """The edge fit ``pe`` with its covariance widened to at least ``B`` (:func:`cov_upper`); ``metrics[key]``:
+    by how much (the largest sigma ratio). Unchanged when the covariance is singular."""
+    try:
+        c_up = cov_upper(pe.cov, B)
+        metrics[key] = float(np.sqrt(max(np.linalg.eigvals(np.linalg.solve(pe.cov, c_up)).real.max(), 1.0)))
+        return dataclasses.replace(pe, cov=c_up)
+    except np.linalg.LinAlgError:
+        return pe
+
+
 def _rank_candidates(fits: list, same_m: float = 0.5) -> tuple[int | None, float]:
     """(index of the fit whose edges meet best, its inlier fraction over the best of the fits that
     ended elsewhere (> ``same_m`` apart; inf when none did)); (None, nan) when no fit has edges."""
@@ -832,22 +843,9 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             cj, n_jk = _jackknife_cov(views, cam, pe, _drive_axes(pe.T, Ll, link.T), cfg, T_final)
             metrics["edge_jackknife_refits"] = n_jk
             if cj is not None:
-                try:
-                    c_up = cov_upper(pe.cov, cj)
-                    # how much the jackknife widened the fit's own covariance (largest sigma ratio)
-                    metrics["edge_jackknife_inflation"] = float(np.sqrt(max(np.linalg.eigvals(
-                        np.linalg.solve(pe.cov, c_up)).real.max(), 1.0)))
-                    pe = dataclasses.replace(pe, cov=c_up)
-                except np.linalg.LinAlgError:
-                    pass
+                pe = _widen(pe, cj, metrics, "edge_jackknife_inflation")
         if pe is not None and spread is not None:
-            try:
-                c_up = cov_upper(pe.cov, spread)
-                metrics["edge_basin_inflation"] = float(np.sqrt(max(np.linalg.eigvals(
-                    np.linalg.solve(pe.cov, c_up)).real.max(), 1.0)))
-                pe = dataclasses.replace(pe, cov=c_up)
-            except np.linalg.LinAlgError:
-                pass
+            pe = _widen(pe, spread, metrics, "edge_basin_inflation")
         diag.edge_pose = pe
         tm["edges"] = time.perf_counter() - t5
         if pe is not None:
