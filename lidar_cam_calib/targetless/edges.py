@@ -63,6 +63,10 @@ class EdgeConfig:
     pose_fine_blur_px: float = cfg_field(1.0, "6-DoF refinement: blur of the fine distance field", range=(0.0, 20.0))
     pose_cauchy_px: float = cfg_field(1.5, "6-DoF refinement: Cauchy scale of the fine stage", range=(0.1, 20.0))
     min_points: int = cfg_field(150, "fewest visible LiDAR edge points (all images)", range=(10, 100000))
+    pose_max_points: int = cfg_field(2000, "6-DoF refinement: at most this many visible edge points per image, "
+                                           "evenly spaced along the scan (a dense LiDAR's 6000 cost 3x the "
+                                           "time; the covariance is scaled by the measured dispersion, so "
+                                           "thinning does not make it overconfident)", range=(100, 1000000))
 
 
 @dataclasses.dataclass
@@ -155,15 +159,27 @@ def image_distance(image: np.ndarray, cfg: EdgeConfig) -> np.ndarray:
     return cv2.distanceTransform(255 - e, cv2.DIST_L2, 5).astype(np.float32)
 
 
-def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear sample of ``img`` at (N,2) pixels (inside the image)."""
-    h, w = img.shape
+def _sample(img: np.ndarray, uv: np.ndarray, layer: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear sample of ``img`` at (N,2) pixels (clamped inside the image): (N,) or (N,C).
+
+    ``img``: (H,W), (H,W,C), or with ``layer`` (N,) a stack (L,H,W) / (L,H,W,C) sampled in layer
+    ``layer[i]`` for point i. One gather per corner on the flattened stack, however many channels."""
+    stacked = layer is not None
+    h, w = img.shape[1:3] if stacked else img.shape[:2]
+    chan = img.ndim > (3 if stacked else 2)
     x = np.clip(uv[:, 0], 0, w - 1.001)
     y = np.clip(uv[:, 1], 0, h - 1.001)
-    x0, y0 = x.astype(int), y.astype(int)
+    x0, y0 = x.astype(np.intp), y.astype(np.intp)
     fx, fy = x - x0, y - y0
-    return (img[y0, x0] * (1 - fx) * (1 - fy) + img[y0, x0 + 1] * fx * (1 - fy)
-            + img[y0 + 1, x0] * (1 - fx) * fy + img[y0 + 1, x0 + 1] * fx * fy)
+    flat = img.reshape(-1, img.shape[-1] if chan else 1)
+    i = y0 * w + x0
+    if stacked:
+        i += layer * (h * w)
+    a, b = (1 - fx) * (1 - fy), fx * (1 - fy)
+    c, d = (1 - fx) * fy, fx * fy
+    out = (np.take(flat, i, axis=0) * a[:, None] + np.take(flat, i + 1, axis=0) * b[:, None]
+           + np.take(flat, i + w, axis=0) * c[:, None] + np.take(flat, i + w + 1, axis=0) * d[:, None])
+    return out if chan else out[:, 0]
 
 
 def _visible(cam: CameraModel, T: np.ndarray, edges: np.ndarray, cloud: np.ndarray, cell_px: int = 4,
@@ -336,30 +352,38 @@ class PoseEdgeResult:
 
 
 def _field(dist: np.ndarray, trunc: float, blur: float):
-    """Truncated, smoothed edge-distance field (from ``image_distance``) and its gradient (px per px)."""
+    """Truncated, smoothed edge-distance field (from ``image_distance``), and the field with its gradient
+    (px per px) stacked as (H,W,3) so that one bilinear gather samples all three."""
     import cv2
     f = np.minimum(dist, trunc).astype(np.float32)
     if blur > 0:
         f = cv2.GaussianBlur(f, (0, 0), blur)
     gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    return f, gx, gy
+    return f, np.ascontiguousarray(np.stack([f, gx, gy], axis=2))
 
 
 def proj_jacobian(K: np.ndarray, q: np.ndarray) -> np.ndarray:
     """(N,2,6) d(pixel)/d(left perturbation: rotation vector, translation) of camera points ``q``
     (pinhole part; distortion changes it by far less than the fit needs)."""
+    n = q.shape[0]
+    out = np.empty((n, 2, 6))
+    for row in (0, 1):
+        g = np.zeros((n, 2))
+        g[:, row] = 1.0
+        out[:, row] = field_jacobian(K, q, g)
+    return out
+
+
+def field_jacobian(K: np.ndarray, q: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(N,6) d(field value)/d(left perturbation) of camera points ``q`` whose field has the image
+    gradient ``g`` (N,2): the gradient pushed through the pinhole projection. The translation part is
+    t = d(field)/dq; the rotation part, for dq = w x q, is q x t."""
     x, y, z = q[:, 0], q[:, 1], q[:, 2]
-    fx, fy = float(K[0, 0]), float(K[1, 1])
-    Jq = np.zeros((q.shape[0], 2, 3))
-    Jq[:, 0, 0] = fx / z
-    Jq[:, 0, 2] = -fx * x / z ** 2
-    Jq[:, 1, 1] = fy / z
-    Jq[:, 1, 2] = -fy * y / z ** 2
-    S = np.zeros((q.shape[0], 3, 3))  # -[q]x
-    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = z, -y, x
-    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = -z, y, -x
-    return np.concatenate([Jq @ S, Jq], axis=2)
+    a = g[:, 0] * float(K[0, 0]) / z
+    b = g[:, 1] * float(K[1, 1]) / z
+    t = np.stack([a, b, -(a * x + b * y) / z], axis=1)
+    return np.concatenate([np.cross(q, t), t], axis=1)
 
 
 def _stats(rj: list, c: float):
@@ -421,11 +445,27 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         vis = _visible(cam, Tk, E, v.pts[v.static][::2])
         if vis.sum() < cfg.min_points // 3:
             continue
+        idx = np.flatnonzero(vis)
+        if idx.size > cfg.pose_max_points:  # evenly thinned (the edges come in scan order)
+            idx = idx[np.linspace(0, idx.size - 1, cfg.pose_max_points).astype(int)]
         # the edge points in the camera frame at X (perturbed on the left from here on)
-        V.append({"q": transform_points(Tk, E[vis]), "dist": v.dist})
+        V.append({"q": transform_points(Tk, E[idx]), "dist": v.dist})
     n = sum(v["q"].shape[0] for v in V)
     if len(V) < 2 or n < cfg.min_points:
         return None
+    # all views at once: their points stacked, each sampling its own image's field (layer)
+    Q = np.concatenate([v["q"] for v in V])
+    sizes = [v["q"].shape[0] for v in V]
+    layer = np.repeat(np.arange(len(V)), sizes)
+    cuts = np.cumsum(sizes)[:-1]
+
+    def fields(trunc: float, blur: float):
+        ff = [_field(v["dist"], trunc, blur) for v in V]
+        return np.stack([a for a, _ in ff]), np.stack([b for _, b in ff])
+
+    def per_view(rJ):
+        r, J = rJ
+        return list(zip(np.split(r, cuts), np.split(J, cuts)))
 
     u = None if up is None else np.asarray(up, float) / max(np.linalg.norm(up), 1e-12)
     if u is None or tilt_prior_deg > 0:
@@ -452,29 +492,23 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         R = so3_exp(xi[:3])
         return q @ R.T + xi[3:]
 
-    def residuals(xi, fields, with_jac=False):
-        out = []
-        for v, (f, gx, gy) in zip(V, fields):
-            q = apply(xi, v["q"])
-            uv, _ = cam.project(q)
-            r = _sample(f, uv)
-            if with_jac:
-                g = np.stack([_sample(gx, uv), _sample(gy, uv)], axis=1)
-                J = np.einsum("ni,nij->nj", g, proj_jacobian(K, q)) @ B
-                out.append((r, J))
-            else:
-                out.append(r)
-        return out
+    def residuals(xi, fld, with_jac=False):
+        """The views' field values at xi (N,), with their Jacobian (N,m): f, gx, gy in one gather."""
+        q = apply(xi, Q)
+        uv, _ = cam.project(q)
+        if not with_jac:
+            return _sample(fld[0], uv, layer)
+        s3 = _sample(fld[1], uv, layer)
+        J = field_jacobian(K, q, s3[:, 1:])
+        return s3[:, 0], (J if m == 6 else J @ B)
 
     def cost(xi, r, c):  # Cauchy loss of the residuals plus the prior
         return float(0.5 * c * c * np.sum(np.log1p((r / c) ** 2)) + 0.5 * (xi - xc) @ P @ (xi - xc))
 
-    def lm(xi, fields, c, iters=25):
+    def lm(xi, fld, c, iters=25):
         lam = 1e-3
         for _ in range(iters):
-            rj = residuals(xi, fields, True)
-            r = np.concatenate([a for a, _ in rj])
-            J = np.concatenate([b for _, b in rj])
+            r, J = residuals(xi, fld, True)
             w = 1.0 / (1.0 + (r / c) ** 2)
             Pm = B.T @ P @ B
             H = J.T @ (J * w[:, None]) + Pm
@@ -489,7 +523,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
                     lam *= 10
                     continue
                 xn = xi + B @ step
-                if cost(xn, np.concatenate(residuals(xn, fields)), c) < f0:
+                if cost(xn, residuals(xn, fld), c) < f0:
                     xi, lam, improved = xn, max(lam / 3, 1e-6), True
                     break
                 lam *= 10
@@ -499,29 +533,30 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         return xi
 
     xi = np.zeros(6)
-    coarse = [_field(v["dist"], cfg.coarse_truncate_px, cfg.pose_coarse_blur_px) for v in V]
+    coarse = fields(cfg.coarse_truncate_px, cfg.pose_coarse_blur_px)
     if direction is not None:
         d = np.asarray(direction, float)
         d = d / max(np.linalg.norm(d), 1e-12)
         s = np.arange(-cfg.search_m, cfg.search_m + 0.5 * cfg.coarse_step_m, cfg.coarse_step_m)
-        f = [float(np.concatenate(residuals(np.concatenate([np.zeros(3), si * d]), coarse)).mean()) for si in s]
+        f = [float(residuals(np.concatenate([np.zeros(3), si * d]), coarse).mean()) for si in s]
         i = int(np.argmin(f))
         if 0 < i < len(s) - 1:
             xi[3:] = s[i] * d
     xi = lm(xi, coarse, 3.0)
-    fine = [_field(v["dist"], cfg.truncate_px, cfg.pose_fine_blur_px) for v in V]
+    del coarse
+    fine = fields(cfg.truncate_px, cfg.pose_fine_blur_px)
     c = cfg.pose_cauchy_px
     xi = lm(xi, fine, c)
     if np.any(Pt):
         # the prior's weight: the residual variance of this fit (dispersion-scaled below)
-        H_, g_, var_ = _stats(residuals(xi, fine, True), c)
+        H_, g_, var_ = _stats(per_view(residuals(xi, fine, True)), c)
         P = Pt * _scale(H_, g_, var_, m)
         xi = lm(xi, fine, c)
     # statistics at the optimum
-    raw_f = [(np.minimum(v["dist"], cfg.truncate_px), None, None) for v in V]
-    r0 = np.concatenate(residuals(np.zeros(6), raw_f))
-    r1 = np.concatenate(residuals(xi, raw_f))
-    Hs, gs, naive = _stats(residuals(xi, fine, True), c)
+    raw_f = (np.stack([np.minimum(v["dist"], cfg.truncate_px) for v in V]), None)
+    r0 = residuals(np.zeros(6), raw_f)
+    r1 = residuals(xi, raw_f)
+    Hs, gs, naive = _stats(per_view(residuals(xi, fine, True)), c)
     scale = _scale(Hs, gs, naive, m)
     H = sum(Hs) + B.T @ P @ B
     try:
