@@ -203,20 +203,15 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     assert max(r["x_error_px"], r["y_error_px"]) < 1.0
     assert r["mahalanobis2"] < 22.5  # chi-square, 6 dof, 99.9 %
     assert r["metrics"]["hausdorff_m"] < 0.05
-    cfg = TargetlessConfig(min_motion_px=10.0 * run.camera.width / 1288.0, time_offset_s=float(run.time_offset_s),
-                           time_offset_sigma_s=0.002, ours_min_edge_inliers=0.99)
-    cal = collect(run, cfg)
-    with pytest.raises(CalibError, match="LiDAR edges do not meet the image edges"):
-        calibrate_window(cal.images, cal.sweeps, cfg)
-    # one coarse candidate (the highest bird's-eye peak, as the config documents) runs: no ranking, and the
-    # window is refused or accepted by its gates (it used to fail unpacking the peak search's result)
+    # the same window with a stricter edge gate and one coarse candidate (the highest bird's-eye peak, as the
+    # config documents; it used to fail unpacking the peak search's result): no ranking, refused with the reason
     from lidar_cam_calib.targetless.calibrator import WindowDiagnostics
+    cfg = TargetlessConfig(min_motion_px=10.0 * run.camera.width / 1288.0, time_offset_s=float(run.time_offset_s),
+                           time_offset_sigma_s=0.002, ours_min_edge_inliers=0.99, ours_coarse_candidates=1)
+    cal = collect(run, cfg)
     diag = WindowDiagnostics()
-    try:
-        calibrate_window(cal.images, cal.sweeps, dataclasses.replace(cfg, ours_min_edge_inliers=0.5,
-                                                                     ours_coarse_candidates=1), diag)
-    except CalibError:
-        pass
+    with pytest.raises(CalibError, match="LiDAR edges do not meet the image edges"):
+        calibrate_window(cal.images, cal.sweeps, cfg, diag)
     assert diag.T_pre_edge is not None and diag.coarse_candidates == []
 
 
