@@ -108,8 +108,11 @@ class TargetlessConfig:
               "result)", range=(0.005, 5.0))
     ours_hausdorff_scale_free: bool = cfg_field(
         True, "ours (edge pose refinement): both Hausdorff gates take the best distance over the camera cloud's "
-              "metric scale within +-3 % about the first camera (the odometry scale was measured up to 1.7 % "
-              "off at speed, which alone moves the clouds' distance at the true extrinsic from 5 to 10 cm)")
+              "metric scale within +-ours_hausdorff_scale_range about the first camera (the odometry scale "
+              "was measured up to 1.7 % off at speed, which alone moves the clouds' distance at the true "
+              "extrinsic from 5 to 10 cm)")
+    ours_hausdorff_scale_range: float = cfg_field(
+        0.03, "ours: half-width of that scale search (relative), in steps of 0.25 %", range=(0.0, 0.2))
     ours_max_hausdorff_above_ground_m: float = cfg_field(
         0.12, "ours, second gate: the same distance over the registered LiDAR points above the ground only "
               "(the ground alone matches whatever slides along a street)", range=(0.005, 5.0))
@@ -867,10 +870,11 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                 metrics["hausdorff_m"] = dist_e["hausdorff_m"]
                 metrics["hausdorff_above_ground_m"] = dist_e["hausdorff_above_ground_m"]
             # the same with the camera cloud's metric scale free about the first camera (the odometry
-            # scale is off by up to ~1.5 % at speed): the best over +-3 %
+            # scale is off by up to ~1.5 % at speed): the best over +-ours_hausdorff_scale_range
             q_cam = transform_points(T_final @ inv_T(T_sweep_img), lid[in_r])
             best_sf = (np.inf, 1.0, np.nan)
-            for sc in np.linspace(0.97, 1.03, 25):
+            sr = cfg.ours_hausdorff_scale_range
+            for sc in np.linspace(1.0 - sr, 1.0 + sr, 2 * int(round(sr / 0.0025)) + 1):  # 0.25 % steps
                 _, dsf = _registered_distances(transform_points(Ls, q_cam * sc), tree, cs, nrm, cfg.hausdorff_quantile)
                 if dsf is not None and dsf["hausdorff_m"] < best_sf[0]:
                     best_sf = (dsf["hausdorff_m"], float(sc), dsf["hausdorff_above_ground_m"])
