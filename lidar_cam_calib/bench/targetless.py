@@ -197,7 +197,8 @@ def kitti_window(kitti_dir, start: int = 0, solvers=("ours",), overlay: str = ""
         top = render_overlay(img, cam, ref.points, T_true)
         cv2.putText(top, "official KITTI calibration", (10, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2)
         bot = render_overlay(img, cam, ref.points, T_est) if T_est is not None else (img * 0.5)
-        label = f"{name}: " + ("accepted" if rec.get("accepted") else "REFUSED (" + rec.get("reason", "")[13:70] + ")")
+        why = rec.get("reason", "").removeprefix("gate failed: ").split(" (")[0].split(";")[0][:70]
+        label = f"{name}: " + ("accepted" if rec.get("accepted") else f"REFUSED ({why})")
         cv2.putText(bot, label, (10, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2)
         cv2.imwrite(overlay, np.vstack([top, bot.astype(np.uint8)]))
     return out
