@@ -64,30 +64,6 @@ def test_lidar_edges_finds_the_board_silhouettes():
     assert on_side.mean() > 0.95
 
 
-def test_lidar_edges_leave_out_foliage_but_keep_the_board_outlines():
-    """A tree crown scatters returns up to 0.5 m deep and lets a third of the rays through to the wall:
-    its depth jumps are no object outline (the image shows none there). The scatter test drops them
-    and keeps the boards' sides."""
-    rng = np.random.default_rng(5)
-    _, _, pts, _ = _scene()
-    r = np.linalg.norm(pts, axis=1)
-    az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
-    el = np.degrees(np.arcsin(pts[:, 2] / r))
-    crown = (az > -45.0) & (az < -30.0) & (el > 3.0) & (el < 12.0) & (r > 20.0)  # in front of the wall only
-    hit = crown & (rng.random(r.size) > 0.35)
-    pts = pts.copy()
-    pts[hit] *= ((7.0 + rng.uniform(0.0, 0.5, int(hit.sum()))) / r[hit])[:, None]
-    in_crown = lambda E: (np.linalg.norm(E, axis=1) < 8.0) & (np.degrees(np.arctan2(E[:, 1], E[:, 0])) < -29.0)
-    E_all, _ = lidar_edges(pts, pts, None, EdgeConfig(max_scatter=1.0))
-    E, _ = lidar_edges(pts, pts, None, EdgeConfig())
-    assert in_crown(E_all).sum() > 40  # without the test the crown is full of silhouettes
-    assert in_crown(E).sum() < 0.1 * in_crown(E_all).sum()
-    on_side = np.zeros(E.shape[0], bool)
-    for x, y0, y1, _z0, _z1, _b in BOARDS:
-        on_side |= (np.abs(E[:, 0] - x) < 0.05) & ((np.abs(E[:, 1] - y0) < 0.1) | (np.abs(E[:, 1] - y1) < 0.1))
-    assert on_side.sum() >= 0.95 * (~in_crown(E_all)).sum()
-
-
 def test_refine_translation_recovers_an_offset_along_the_driving_direction():
     cam, img, pts, X = _scene()
     d = X[:3, :3] @ np.array([1.0, 0.0, 0.0])  # driving direction (LiDAR x) in the camera frame

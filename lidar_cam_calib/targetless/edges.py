@@ -33,7 +33,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..core.calibrator import cfg_field
 from ..core.camera import CameraModel
@@ -64,10 +63,6 @@ class EdgeConfig:
     pose_fine_blur_px: float = cfg_field(1.0, "6-DoF refinement: blur of the fine distance field", range=(0.0, 20.0))
     pose_cauchy_px: float = cfg_field(1.5, "6-DoF refinement: Cauchy scale of the fine stage", range=(0.1, 20.0))
     min_points: int = cfg_field(150, "fewest visible LiDAR edge points (all images)", range=(10, 100000))
-    max_scatter: float = cfg_field(0.05, "silhouette: its 10 nearest sweep points must lie on a surface or a "
-                                         "line, smallest over largest principal variance below this (foliage "
-                                         "scatters returns deep into a crown: its depth jumps are no image "
-                                         "edges; 1 keeps all)", range=(0.0, 1.0))
     pose_max_points: int = cfg_field(2000, "6-DoF refinement: at most this many visible edge points per image, "
                                            "evenly spaced along the scan (a dense LiDAR's 6000 cost 3x the "
                                            "time; the covariance is scaled by the measured dispersion, so "
@@ -138,15 +133,8 @@ def lidar_edges(raw: np.ndarray, pts: np.ndarray, intensity: np.ndarray | None, 
     ub = raw[b[sil]] / rb[sil, None]
     um = ua + ub
     um /= np.maximum(np.linalg.norm(um, axis=1, keepdims=True), 1e-12)
-    sil_pts = pts[idx] + um * near[sil, None] - raw[idx]
-    if cfg.max_scatter < 1.0 and idx.size and pts.shape[0] >= 10:
-        # volumetric scatter about the silhouette (foliage): not an object's outline
-        _, nn = cKDTree(pts).query(sil_pts, k=10)
-        d = pts[nn] - pts[nn].mean(axis=1, keepdims=True)
-        w = np.linalg.eigvalsh(np.einsum("mki,mkj->mij", d, d))
-        sil_pts = sil_pts[w[:, 0] < cfg.max_scatter * np.maximum(w[:, 2], 1e-12)]
-    out = [sil_pts]
-    kind = [np.zeros(sil_pts.shape[0], int)]
+    out = [pts[idx] + um * near[sil, None] - raw[idx]]
+    kind = [np.zeros(idx.size, int)]
     if intensity is not None and intensity.size == raw.shape[0]:
         scale = max(float(np.percentile(intensity, 95)), 1e-9)
         di = np.abs(intensity[a] - intensity[b]) / scale
