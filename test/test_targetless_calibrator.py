@@ -215,6 +215,31 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     assert diag.T_pre_edge is not None and diag.coarse_candidates == []
 
 
+def test_prior_move_counts_tilt_and_height_in_prior_units_not_yaw_or_lateral():
+    """The prior-conflict gate's figure: a tilt of two prior sigmas and a height move of two prior sigmas
+    give 4 + 4; a yaw about the up axis and a move across the ground plane, which the ground planes do not
+    see, give nothing. The gate refuses above ours_max_prior_conflict (chi-square, 3 dof, 0.1 %)."""
+    from lidar_cam_calib.core.geometry import so3_exp
+    from lidar_cam_calib.targetless.calibrator import _prior_move
+    cfg = TargetlessConfig()
+    up = np.array([0.0, -1.0, 0.0])  # camera frame: y points down
+    C = make_T(so3_exp(np.array([0.01, 0.3, -0.02])), np.array([0.2, -0.5, 1.1]))
+    s_t, s_h = np.radians(cfg.ours_edge_tilt_prior_deg), cfg.ours_edge_height_prior_m
+    R = so3_exp(np.array([2 * s_t, 0.0, 0.0]))  # about the camera x axis: a pitch
+    T = make_T(R @ C[:3, :3], R @ C[:3, 3] + 2 * s_h * up)
+    m = _prior_move(T, C, 3.0 * up, cfg)  # the up vector need not be unit length
+    assert m["edge_prior_tilt_move_deg"] == pytest.approx(2 * cfg.ours_edge_tilt_prior_deg, rel=1e-6)
+    assert m["edge_prior_height_move_m"] == pytest.approx(2 * s_h, rel=1e-6)
+    assert m["edge_prior_conflict"] == pytest.approx(8.0, rel=1e-6)
+    assert m["edge_prior_conflict"] <= cfg.ours_max_prior_conflict
+    R = so3_exp(np.radians(2.0) * up)
+    T = make_T(R @ C[:3, :3], R @ C[:3, 3] + np.array([0.5, 0.0, -0.4]))
+    assert _prior_move(T, C, up, cfg)["edge_prior_conflict"] == pytest.approx(0.0, abs=1e-12)
+    R = so3_exp(np.array([0.0, 0.0, 5 * s_t]))  # a roll of five sigmas alone is refused
+    assert _prior_move(make_T(R @ C[:3, :3], R @ C[:3, 3]), C, up, cfg)["edge_prior_conflict"] > \
+        cfg.ours_max_prior_conflict
+
+
 def test_predicted_projection_error_matches_sampled_errors():
     """The gate's predicted mean projection error equals the mean error of extrinsics drawn from the
     covariance (the bench's x_error_px / y_error_px), and grows with the translation uncertainty."""

@@ -208,6 +208,12 @@ class TargetlessConfig:
     ours_min_edge_inliers: float = cfg_field(0.5, "ours, pose mode, gate: fewest LiDAR edge points within 1.5 px "
                                                   "of an image edge after the refinement (a fraction)",
                                              range=(0.0, 1.0))
+    ours_max_prior_conflict: float = cfg_field(
+        16.3, "ours, pose mode, gate: the largest squared, prior-normalised move of the edge fit's tilt and "
+              "height away from where the ground planes put them (ours_edge_tilt_prior_deg, "
+              "ours_edge_height_prior_m; 3 degrees of freedom, 16.3 is chi-square's 0.1 %: the edges may "
+              "rightly correct a prior by 3-4 sigma, 1 % refused a good window): beyond it the ground "
+              "planes and the image edges disagree and neither can be trusted", range=(0.0, 1e6))
     ours_min_edge_views: int = cfg_field(4, "ours, pose mode, gate: fewest images whose LiDAR edges are seen",
                                          range=(2, 30))
     ours_edge_floor_deg: float = cfg_field(0.07, "ours, pose mode: 1-sigma per axis added to the rotation for "
@@ -513,6 +519,22 @@ def _edge_basins(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg: 
         near = [r for r in near if r is not best] + [best]
     D = np.array([_delta(r.T, best.T) for r in near])
     return best, (D.T @ D / len(near) if len(near) > 1 else None), len(near), len(shifts)
+
+
+def _prior_move(T: np.ndarray, centre: np.ndarray, up: np.ndarray, cfg: TargetlessConfig) -> dict:
+    """How far the edge fit ``T`` moved the tilt and the height from the ground planes' ``centre`` (the
+    clouds' estimate, where the priors sit), in the priors' own perturbation (left, camera frame), and that
+    move squared in units of the priors (``edge_prior_conflict``: chi-square with 3 degrees of freedom when
+    the priors are honest and the edges see tilt and height better than the priors)."""
+    u = up / max(np.linalg.norm(up), 1e-12)
+    R = T[:3, :3] @ centre[:3, :3].T
+    w = so3_log(R)
+    tilt = float(np.linalg.norm(w - (w @ u) * u))
+    height = float(u @ (T[:3, 3] - R @ centre[:3, 3]))
+    z2 = (tilt / math.radians(max(cfg.ours_edge_tilt_prior_deg, 1e-9))) ** 2 + \
+        (height / max(cfg.ours_edge_height_prior_m, 1e-9)) ** 2
+    return {"edge_prior_tilt_move_deg": math.degrees(tilt), "edge_prior_height_move_m": height,
+            "edge_prior_conflict": float(z2)}
 
 
 def cov_upper(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -860,6 +882,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                             "edge_delta_rot_deg": float(np.degrees(np.linalg.norm(
                                 so3_log(pe.T[:3, :3] @ T_final[:3, :3].T)))),
                             "edge_delta_norm_m": float(np.linalg.norm(pe.T[:3, 3] - T_final[:3, 3]))})
+            metrics.update(_prior_move(pe.T, T_final, _drive_axes(T_final, Ll, link.T)[1], cfg))
             T_final = pe.T
             # the registered clouds' distances again, now through the refined extrinsic
             metrics["hausdorff_before_edges_m"] = metrics.get("hausdorff_m", float("nan"))
@@ -1007,6 +1030,14 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                          f"projection error of {pred[0]:.1f} / {pred[1]:.1f} px in x / y > "
                          f"{cfg.ours_max_predicted_px:.1f} px); calibration rejected (drive past more poles, "
                          "trunks and facades close to the road, or a longer stretch)")
+    if ours and pe is not None and not (metrics["edge_prior_conflict"] <= cfg.ours_max_prior_conflict):
+        raise CalibError(f"gate failed: the image edges pull the camera's tilt "
+                         f"{metrics['edge_prior_tilt_move_deg']:.2f} deg and its height "
+                         f"{metrics['edge_prior_height_move_m'] * 100:+.1f} cm away from where the ground planes "
+                         f"put them (squared, in units of the priors' {cfg.ours_edge_tilt_prior_deg:.2f} deg / "
+                         f"{cfg.ours_edge_height_prior_m * 100:.1f} cm: {metrics['edge_prior_conflict']:.1f} > "
+                         f"{cfg.ours_max_prior_conflict:.1f}): the ground planes and the image edges disagree; "
+                         "calibration rejected (drive a stretch where the road ahead is open and flat)")
     diag.metrics = metrics
     return T_final, cov, metrics
 
