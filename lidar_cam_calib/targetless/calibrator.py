@@ -848,7 +848,8 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     if views:
         t5 = time.perf_counter()
         # the tilt and height priors (ground planes) stay about the clouds' estimate for every start
-        pe = _edge_fit(views, cam, T_final, _drive_axes(T_final, Ll, link.T), cfg, T_final)
+        axes_centre = _drive_axes(T_final, Ll, link.T)
+        pe = _edge_fit(views, cam, T_final, axes_centre, cfg, T_final)
         if coarse_fit is not None:
             # the edges chose the coarse translation: their own fit from it is a second start (the clouds'
             # ICP may have slid away from it along the street)
@@ -882,7 +883,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                             "edge_delta_rot_deg": float(np.degrees(np.linalg.norm(
                                 so3_log(pe.T[:3, :3] @ T_final[:3, :3].T)))),
                             "edge_delta_norm_m": float(np.linalg.norm(pe.T[:3, 3] - T_final[:3, 3]))})
-            metrics.update(_prior_move(pe.T, T_final, _drive_axes(T_final, Ll, link.T)[1], cfg))
+            metrics.update(_prior_move(pe.T, T_final, axes_centre[1], cfg))
             T_final = pe.T
             # the registered clouds' distances again, now through the refined extrinsic
             metrics["hausdorff_before_edges_m"] = metrics.get("hausdorff_m", float("nan"))
