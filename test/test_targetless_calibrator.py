@@ -186,33 +186,58 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     yaw -8 deg), clock offset known: ``ours`` is accepted and close to the truth, and the truth lies
     inside its covariance. No initial guess enters. (Measured at the bench's 644 px width, before
     the height prior was added: 0.35/0.54 px, 0.15 deg, 23 mm; the tolerances leave room for changes
-    elsewhere in the pipeline.) The same window with a stricter
-    edge gate is refused, and says why."""
-    from lidar_cam_calib.bench.targetless import bench_run, collect
+    elsewhere in the pipeline.) The same window with a stricter edge gate is refused, says why, and
+    leaves the accepted window's result in effect; fed once more, the published result is the fusion of
+    the two accepted windows: the same extrinsic, the windows' own part of the covariance halved, the
+    part every window shares (floors, clock) kept."""
+    from lidar_cam_calib.bench.targetless import collect, mahalanobis2, projection_errors
     from lidar_cam_calib.core.errors import CalibError
+    from lidar_cam_calib.core.geometry import pose_errors
     from lidar_cam_calib.sim.street_world import sample_street_family, simulate_drive
-    from lidar_cam_calib.targetless.calibrator import TargetlessConfig, calibrate_window
     sc = sample_street_family(2, "slow")
     run = simulate_drive(sc, duration_s=max(2.5, 10 / sc.camera.rate_hz + 0.3), image_scale=0.5)
-    r = bench_run(run, 2, "slow", solvers=("ours",), known_offset=True)["solvers"]["ours"]
-    assert r["accepted"], r.get("reason")
-    # the pose refinement on the image edges ran on most of the window's images
-    assert r["metrics"]["edge_views"] >= 6 and r["metrics"]["edge_inliers"] > r["metrics"]["edge_inliers0"]
-    assert r["rotation_error_deg"] < 0.25
-    assert r["translation_error_mm"] < 35.0
-    assert max(r["x_error_px"], r["y_error_px"]) < 1.0
-    assert r["mahalanobis2"] < 22.5  # chi-square, 6 dof, 99.9 %
-    assert r["metrics"]["hausdorff_m"] < 0.05
-    # the same window with a stricter edge gate and one coarse candidate (the highest bird's-eye peak, as the
-    # config documents; it used to fail unpacking the peak search's result): no ranking, refused with the reason
-    from lidar_cam_calib.targetless.calibrator import WindowDiagnostics
     cfg = TargetlessConfig(min_motion_px=10.0 * run.camera.width / 1288.0, time_offset_s=float(run.time_offset_s),
-                           time_offset_sigma_s=0.002, ours_min_edge_inliers=0.99, ours_coarse_candidates=1)
+                           time_offset_sigma_s=0.002)
     cal = collect(run, cfg)
-    diag = WindowDiagnostics()
-    with pytest.raises(CalibError, match="LiDAR edges do not meet the image edges"):
-        calibrate_window(cal.images, cal.sweeps, cfg, diag)
+    res = cal.fit()
+    T, cov, m = res.T_child_parent, res.covariance, res.metrics
+    T_true = np.asarray(run.T_camera_lidar)
+    ref = min(cal.sweeps, key=lambda s: abs(s.stamp_s - cal.images[0].stamp_s))
+    ex, ey = projection_errors(run.camera, T, T_true, ref.points)
+    r_deg, t_mm = pose_errors(T, T_true)
+    # the pose refinement on the image edges ran on most of the window's images
+    assert m["edge_views"] >= 6 and m["edge_inliers"] > m["edge_inliers0"]
+    assert r_deg < 0.25
+    assert t_mm < 35.0
+    assert max(ex, ey) < 1.0
+    assert mahalanobis2(T, T_true, cov) < 22.5  # chi-square, 6 dof, 99.9 %
+    assert m["hausdorff_m"] < 0.05
+    assert m["windows_accepted"] == 1 and m["windows_fused"] == 1 and res.observations_used == cfg.n_frames
+    window = cal.windows[0]
+    assert np.allclose(T, window["T"]) and np.allclose(cov, window["cov"])
+    # the same window with a stricter edge gate and one coarse candidate (the highest bird's-eye peak, as the
+    # config documents; it used to fail unpacking the peak search's result): no ranking, refused with the
+    # reason, and the accepted window stays
+    cal.cfg = dataclasses.replace(cfg, ours_min_edge_inliers=0.99, ours_coarse_candidates=1)
+    with pytest.raises(CalibError, match="LiDAR edges do not meet the image edges.*the fusion of the 1 accepted"):
+        cal.fit()
+    diag = cal.last_diagnostics
     assert diag.T_pre_edge is not None and diag.coarse_candidates == []
+    assert len(cal.windows) == 1 and cal.status()["windows_tried"] == 2
+    # accepted once more: two identical estimates fuse to the same extrinsic, (C - F) / 2 + F
+    cal.cfg = cfg
+    res2 = cal.fit()
+    F = window["shared"]
+    assert F[0, 0] > 0 and F[3, 3] > 0
+    assert np.allclose(res2.T_child_parent, T, atol=1e-9)
+    assert np.allclose(res2.covariance, (cov - F) / 2 + F, rtol=1e-6, atol=1e-12)
+    assert res2.metrics["windows_fused"] == 2 and res2.observations_used == 2 * cfg.n_frames
+    assert any("fusion of 2 accepted windows" in n for n in res2.notes)
+    # the next window starts with no image; reset() drops the accepted windows too
+    cal.next_window()
+    assert cal.status()["frames_collected"] == 0 and len(cal.windows) == 2 and cal.sweeps
+    cal.reset()
+    assert cal.windows == [] and cal.sweeps == []
 
 
 def test_prior_move_counts_tilt_and_height_in_prior_units_not_yaw_or_lateral():

@@ -55,7 +55,8 @@ class TargetlessCalibNode(CalibNodeBase):
         self._last_sweep = None
 
     def after_fit(self) -> None:
-        self.calib.reset()   # the next window starts (continuous re-calibration is the next step)
+        # the next window starts; the accepted windows stay and are fused with the next ones
+        self.calib.next_window()
 
     # -- inputs -------------------------------------------------------------------------
     def _on_info(self, msg: CameraInfo) -> None:

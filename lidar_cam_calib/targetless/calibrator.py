@@ -67,6 +67,7 @@ from scipy.spatial import cKDTree
 
 from ..core.calibrator import Verdict, cfg_field
 from ..core.errors import CalibError, NotReadyError
+from ..core.fusion import fuse_estimates
 from ..core.geometry import inv_T, make_T, skew, so3_exp, so3_log, transform_points
 from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
@@ -133,6 +134,12 @@ class TargetlessConfig:
                                                range=(-360.0, 360.0))
     sweep_period_s: float = cfg_field(0.1, "sweep period when no per-point time is published", range=(0.01, 1.0))
     deskew: bool = cfg_field(True, "de-skew the reference sweep with the odometry velocity")
+    fuse_windows: int = cfg_field(10, "the published result fuses the most recent accepted windows of the "
+                                      "collection, weighted by their covariances (1: each window alone)",
+                                  range=(1, 1000))
+    fuse_outlier_p: float = cfg_field(0.001, "with 3 or more windows, one that disagrees with the fusion of the "
+                                             "others beyond this chi-square tail (6 dof) is left out",
+                                      range=(1e-9, 0.5))
     max_point_sigma_m: float = cfg_field(0.15, "camera-cloud points with a larger predicted triangulation "
                                               "error are dropped", range=(0.005, 10.0))
     ours_max_point_sigma_m: float = cfg_field(0.05, "ours: the same limit for the translation ICP (the "
@@ -261,6 +268,8 @@ class WindowDiagnostics:
     registered: dict = dataclasses.field(default_factory=dict)
     timings_s: dict = dataclasses.field(default_factory=dict)
     metrics: dict = dataclasses.field(default_factory=dict)
+    # the part of the covariance every window of the drive shares (floors, clock): fusing windows keeps it
+    shared_cov: np.ndarray | None = None
 
 
 def _median_flow_px(a: np.ndarray, b: np.ndarray) -> float:
@@ -300,7 +309,9 @@ def deskew_sweep(sweep: LidarSweep, T_prev_cur: np.ndarray, cfg: TargetlessConfi
 
 
 class TargetlessCalibrator:
-    """Collects sweeps and images (``add``), calibrates one window (``fit``)."""
+    """Collects sweeps and images (``add``), calibrates one window (``fit``) and publishes the fusion of
+    the accepted windows of the collection (``fuse_windows``); ``next_window`` starts the next window,
+    ``reset`` the next collection."""
 
     def __init__(self, cfg: TargetlessConfig | None = None):
         self.cfg = cfg or TargetlessConfig()
@@ -309,10 +320,19 @@ class TargetlessCalibrator:
         self.reset()
 
     def reset(self) -> None:
-        self.images: list[CameraFrame] = []
+        """A new collection: the images, the sweeps and the accepted windows are dropped."""
         self.sweeps: list[LidarSweep] = []
-        self.last_reason = ""
+        self.windows: list[dict] = []   # accepted windows: T, cov, shared, stamps, metrics
+        self.n_windows_tried = 0
+        self.next_window()
         self.n_seen_images = 0
+
+    def next_window(self) -> None:
+        """The next window of the same collection: its images start again; the sweeps still needed and
+        the accepted windows are kept."""
+        self.images: list[CameraFrame] = []
+        self.last_reason = ""
+        self._trim_sweeps()
 
     # -- collection -----------------------------------------------------------
     def add(self, frame) -> Verdict:
@@ -350,8 +370,8 @@ class TargetlessCalibrator:
             t0 = self._lidar_time(self.images[0]) - 0.5
             while len(self.sweeps) > 2 and self.sweeps[1].stamp_s < t0:
                 self.sweeps.pop(0)
-        elif len(self.sweeps) > 8:
-            self.sweeps.pop(0)
+        else:
+            del self.sweeps[:-8]
 
     def _lidar_time(self, img: CameraFrame) -> float:
         return img.stamp_s - self.cfg.time_offset_s
@@ -369,6 +389,7 @@ class TargetlessCalibrator:
             advice = "waiting for LiDAR sweeps covering the kept images"
         return {"frames_collected": len(self.images), "frames_needed": self.cfg.n_frames,
                 "sweeps_buffered": len(self.sweeps), "images_seen": self.n_seen_images,
+                "windows_tried": self.n_windows_tried, "windows_accepted": len(self.windows),
                 "last_reason": self.last_reason, "advice": advice, "ready": self.ready()}
 
     # -- fit ------------------------------------------------------------------
@@ -379,14 +400,43 @@ class TargetlessCalibrator:
         diag = WindowDiagnostics()
         self.last_diagnostics = diag
         self.last_window_images = list(self.images)
-        T, cov, metrics = calibrate_window(self.images, self.sweeps, self.cfg, diag)
+        self.n_windows_tried += 1
+        try:
+            T, cov, metrics = calibrate_window(self.images, self.sweeps, self.cfg, diag)
+        except CalibError as e:
+            if self.windows:
+                raise CalibError(f"{e} (window {self.n_windows_tried}; the fusion of the {len(self.windows)} "
+                                 "accepted before stays)") from e
+            raise
+        shared = diag.shared_cov if diag.shared_cov is not None else np.zeros((6, 6))
+        self.windows.append({"T": T, "cov": cov, "shared": shared, "stamps": [f.stamp_s for f in self.images],
+                             "index": self.n_windows_tried})
+        recent = self.windows[-self.cfg.fuse_windows:]
+        fused = fuse_estimates([w["T"] for w in recent], [w["cov"] for w in recent],
+                               shared=np.mean([w["shared"] for w in recent], axis=0),
+                               outlier_p=self.cfg.fuse_outlier_p)
+        used = [recent[i] for i in fused.used]
+        sw = np.degrees(np.sqrt(np.max(np.diag(cov)[:3]))), 1000 * np.sqrt(np.max(np.diag(cov)[3:]))
+        metrics = {**metrics, "window_sigma_rotation_deg": float(sw[0]), "window_sigma_translation_mm": float(sw[1]),
+                   "windows_accepted": len(self.windows), "windows_tried": self.n_windows_tried,
+                   "windows_fused": len(used), "windows_left_out": len(fused.dropped),
+                   "fusion_chi2": fused.chi2, "fusion_dof": fused.dof, "fusion_birge": fused.birge}
+        notes = ["Nagy & Benedek 2020 pipeline (SfM, objects, 4D Hough, ICP, PnP); curve refinement not "
+                 "implemented"]
+        if len(used) > 1:
+            notes.append(f"fusion of {len(used)} accepted windows (of {self.n_windows_tried} tried): "
+                         + ", ".join(str(w["index"]) for w in used)
+                         + (f"; scatter chi2 {fused.chi2:.1f} / {fused.dof} dof, covariance x {fused.birge:.2f}"
+                            if fused.birge > 1 else ""))
+        for i, c2 in fused.dropped:
+            notes.append(f"window {recent[i]['index']} left out: it disagrees with the others (chi2 {c2:.1f}, "
+                         f"6 dof, beyond the {100 * (1 - self.cfg.fuse_outlier_p):.1f} % quantile)")
         img0 = self.images[0]
         return CalibrationResult(
             method="targetless", parent_frame=self.sweeps[0].frame_id, child_frame=img0.frame_id,
-            T_child_parent=T, covariance=cov, metrics=metrics, observations_used=len(self.images),
-            stamps=[f.stamp_s for f in self.images], solver=self.cfg.solver,
-            notes=["Nagy & Benedek 2020 pipeline (SfM, objects, 4D Hough, ICP, PnP); curve refinement not "
-                   "implemented"])
+            T_child_parent=fused.T, covariance=fused.cov, metrics=metrics,
+            observations_used=sum(len(w["stamps"]) for w in used),
+            stamps=[t for w in used for t in w["stamps"]], solver=self.cfg.solver, notes=notes)
 
 
 def _neighbours(sweeps: list, use: list, poses: list, j: int, gap: int) -> tuple[list, list]:
@@ -936,9 +986,12 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         # the edge fit's own covariance (dispersion-scaled, with the tilt prior), a floor for what the
         # images share (the LiDAR edge placement, the camera model), and the clock along the drive
         cov = pe.cov.copy()
-        cov[:3, :3] += np.eye(3) * math.radians(cfg.ours_edge_floor_deg) ** 2
-        cov[3:, 3:] += np.eye(3) * cfg.ours_edge_floor_m ** 2 + \
+        shared = np.zeros((6, 6))
+        shared[:3, :3] = np.eye(3) * math.radians(cfg.ours_edge_floor_deg) ** 2
+        shared[3:, 3:] = np.eye(3) * cfg.ours_edge_floor_m ** 2 + \
             np.outer(vdir, vdir) * (speed * cfg.time_offset_sigma_s) ** 2
+        cov += shared
+        diag.shared_cov = shared
     elif icp is not None:
         sig2 = icp.residual_sigma_m ** 2
         try:
@@ -967,8 +1020,10 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         # scale: a relative error e moves the registered translation by about e * |t|
         tcam = T_final[:3, 3]
         cov[3:, 3:] += np.outer(tcam, tcam) * scale_rel ** 2 + np.eye(3) * (scale_rel * 0.5) ** 2 * 0.01
-        # clock: translation along the driving direction
-        cov[3:, 3:] += np.outer(vdir, vdir) * (speed * cfg.time_offset_sigma_s) ** 2
+        # clock: translation along the driving direction (the same offset in every window)
+        diag.shared_cov = np.zeros((6, 6))
+        diag.shared_cov[3:, 3:] = np.outer(vdir, vdir) * (speed * cfg.time_offset_sigma_s) ** 2
+        cov[3:, 3:] += diag.shared_cov[3:, 3:]
     if ours and pe is None:
         # the camera cloud's depth ahead (what fixes the translation along a street) carries a bias
         # correlated through the SfM poses that the ICP information does not see
