@@ -9,6 +9,10 @@ images and sweeps go through every solver (``oba``, ``oba_icp``, ``paper``,
 points of the reference sweep that the true extrinsic puts in the image),
 ``rotation_error_deg``, ``translation_error_mm``, ``runtime_s``, ``accepted``
 (False with ``reason`` when a gate or a step refused), ``mahalanobis2``.
+
+``--windows K``: ``ours`` on K consecutive windows of each drive through one
+calibrator, as the node runs it (``ours``: the first window alone;
+``ours_fused``: the fusion of the accepted windows published after the last).
 """
 from __future__ import annotations
 
