@@ -71,7 +71,12 @@ def test_a_window_far_from_the_others_is_left_out_and_reported():
     # two windows that disagree: neither can be told to be the wrong one, both stay and the Birge ratio
     # widens the covariance to cover them
     f2 = fuse_estimates(Ts[1:3], [C] * 2)
-    assert f2.dropped == [] and f2.birge > 10
+    assert f2.dropped == [] and f2.birge > 10 and not f2.agree
+    assert fuse_estimates(Ts[:2], [C] * 2).agree
+    # three windows, the wrong one the most confident: the two that agree are kept (the scale the suspect is
+    # judged by comes from the other windows' pairs, which it does not enter)
+    f3 = fuse_estimates([Ts[0], Ts[1], Ts[2]], [C, C, C / 4])
+    assert [i for i, _ in f3.dropped] == [2] and f3.used == [0, 1] and f3.agree
 
 
 def test_bad_input_is_refused_with_a_message():

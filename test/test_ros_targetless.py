@@ -28,8 +28,10 @@ def test_simulated_drive_through_the_node(tmp_path):
     duration = max(2.5, (TargetlessConfig().n_frames + 2) / sc.camera.rate_hz + 0.3) + 1.0
     bag, truth_path = write_street_bag(sc, str(tmp_path), image_scale=0.5, duration_s=duration)
     truth = yaml.safe_load(open(truth_path))
+    # the bag holds one window: published alone (fuse_min_windows 1; by default two windows must agree, which
+    # test_targetless_calibrator checks without the node)
     params = {"lidar_topic": "/lidar/points", "time_offset_s": float(truth["time_offset_s"]),
-              "time_offset_sigma_s": 0.002}
+              "time_offset_sigma_s": 0.002, "fuse_min_windows": 1}
     pf = tmp_path / "params.yaml"
     pf.write_text(yaml.safe_dump({"/**": {"ros__parameters": params}}))
     out = tmp_path / "r.yaml"

@@ -16,8 +16,11 @@ windows scatter more than their covariances say (never less than 1), plus
 the others beyond the ``1 - outlier_p`` quantile of χ² with 6 degrees of
 freedom is left out (the worst first, one at a time) and reported; the
 threshold is scaled by the common scatter of the other windows (the median
-of their own χ² over its expected value, at least 1), so covariances that are
-all too small widen the result instead of dropping windows.
+χ² of their pairwise differences over its expected value, at least 1), so
+covariances that are all too small widen the result instead of dropping
+windows. ``agree`` is False when exactly two windows remain and their
+difference is beyond that quantile: neither can be told to be the wrong one
+(a caller may wait for a third).
 """
 from __future__ import annotations
 
@@ -38,6 +41,7 @@ class FusedEstimate:
     chi2: float              # scatter of the used estimates about the fused one
     dof: int                 # 6 * (len(used) - 1)
     birge: float             # max(1, chi2 / dof); 1 for one estimate
+    agree: bool = True       # False: two estimates left that differ beyond the outlier quantile
 
 
 def _delta(T: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
@@ -93,17 +97,26 @@ def fuse_estimates(Ts: list, covs: list, shared: np.ndarray | None = None, outli
     dropped = []
     limit = float(_chi2.ppf(1.0 - outlier_p, 6))
     med6 = float(_chi2.ppf(0.5, 6))
+    Cs_own = [np.linalg.inv(W) for W in Ws]
+
+    def pair(i, j):  # chi2 of two windows' difference (the shared error cancels)
+        d = _delta(Ts[i], Ts[j])
+        return float(d @ np.linalg.solve(Cs_own[i] + Cs_own[j], d))
+
     while len(used) >= 3:
         c2s = []
         for i in used:
             rest = [j for j in used if j != i]
             T_r, H_r = _mean([Ts[j] for j in rest], [Ws[j] for j in rest])
             d = _delta(Ts[i], T_r)
-            c2s.append(float(d @ np.linalg.solve(np.linalg.inv(Ws[i]) + np.linalg.inv(H_r), d)))
-        # judged against the windows' common scatter (covariances that are all too small make every
-        # window look far from the others: that is for the Birge ratio, not for leaving windows out)
+            c2s.append(float(d @ np.linalg.solve(Cs_own[i] + np.linalg.inv(H_r), d)))
+        # judged against the common scatter of the other windows, pair by pair (covariances that are all
+        # too small make every window look far from the others: that is for the Birge ratio, not for
+        # leaving windows out; pairs keep the suspect window out of the scale it is judged by)
         k = int(np.argmax(c2s))
-        common = max(1.0, float(np.median(np.delete(c2s, k))) / med6)
+        others = [j for j in used if j != used[k]]
+        common = max(1.0, float(np.median([pair(i, j) for a, i in enumerate(others) for j in others[a + 1:]]))
+                     / med6)
         if c2s[k] / common <= limit:
             break
         dropped.append((used[k], c2s[k]))
@@ -113,7 +126,8 @@ def fuse_estimates(Ts: list, covs: list, shared: np.ndarray | None = None, outli
     dof = 6 * (len(used) - 1)
     birge = max(1.0, c2 / dof) if dof > 0 else 1.0
     cov = np.linalg.inv(H) * birge + F
-    return FusedEstimate(T=T, cov=0.5 * (cov + cov.T), used=used, dropped=dropped, chi2=c2, dof=dof, birge=birge)
+    return FusedEstimate(T=T, cov=0.5 * (cov + cov.T), used=used, dropped=dropped, chi2=c2, dof=dof, birge=birge,
+                         agree=not (len(used) == 2 and c2 > limit))
 
 
 __all__ = ["FusedEstimate", "fuse_estimates"]

@@ -140,6 +140,9 @@ class TargetlessConfig:
     fuse_outlier_p: float = cfg_field(0.001, "with 3 or more windows, one that disagrees with the fusion of the "
                                              "others beyond this chi-square tail (6 dof) is left out",
                                       range=(1e-9, 0.5))
+    fuse_min_windows: int = cfg_field(2, "a result is published once this many accepted windows agree (two "
+                                         "independent windows within their covariances; 1: every accepted "
+                                         "window at once)", range=(1, 100))
     max_point_sigma_m: float = cfg_field(0.15, "camera-cloud points with a larger predicted triangulation "
                                               "error are dropped", range=(0.005, 10.0))
     ours_max_point_sigma_m: float = cfg_field(0.05, "ours: the same limit for the translation ICP (the "
@@ -324,6 +327,7 @@ class TargetlessCalibrator:
         self.sweeps: list[LidarSweep] = []
         self.windows: list[dict] = []   # accepted windows: T, cov, shared, stamps, metrics
         self.n_windows_tried = 0
+        self.last_fused = None
         self.next_window()
         self.n_seen_images = 0
 
@@ -405,12 +409,12 @@ class TargetlessCalibrator:
             T, cov, metrics = calibrate_window(self.images, self.sweeps, self.cfg, diag)
         except CalibError as e:
             if self.windows:
-                raise CalibError(f"{e} (window {self.n_windows_tried}; the fusion of the {len(self.windows)} "
-                                 "accepted before stays)") from e
+                raise CalibError(f"{e} (window {self.n_windows_tried}; {len(self.windows)} accepted before, "
+                                 "kept)") from e
             raise
         shared = diag.shared_cov if diag.shared_cov is not None else np.zeros((6, 6))
         self.windows.append({"T": T, "cov": cov, "shared": shared, "stamps": [f.stamp_s for f in self.images],
-                             "index": self.n_windows_tried})
+                             "index": self.n_windows_tried, "metrics": metrics})
         recent = self.windows[-self.cfg.fuse_windows:]
         fused = fuse_estimates([w["T"] for w in recent], [w["cov"] for w in recent],
                                shared=np.mean([w["shared"] for w in recent], axis=0),
@@ -431,6 +435,15 @@ class TargetlessCalibrator:
         for i, c2 in fused.dropped:
             notes.append(f"window {recent[i]['index']} left out: it disagrees with the others (chi2 {c2:.1f}, "
                          f"6 dof, beyond the {100 * (1 - self.cfg.fuse_outlier_p):.1f} % quantile)")
+        self.last_fused = fused
+        if len(used) < self.cfg.fuse_min_windows or not fused.agree:
+            why = (f"the {len(used)} accepted windows disagree (chi2 {fused.chi2:.1f}, 6 dof, beyond the "
+                   f"{100 * (1 - self.cfg.fuse_outlier_p):.1f} % quantile): neither is trusted until a third "
+                   "decides" if not fused.agree else
+                   f"{len(used)} of {self.cfg.fuse_min_windows} agreeing windows needed before a result is "
+                   "published")
+            raise CalibError(f"window {self.n_windows_tried} accepted ({sw[0]:.2f} deg, {sw[1]:.0f} mm 1-sigma), "
+                             f"but {why}; keep driving")
         img0 = self.images[0]
         return CalibrationResult(
             method="targetless", parent_frame=self.sweeps[0].frame_id, child_frame=img0.frame_id,
