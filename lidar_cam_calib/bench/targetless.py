@@ -67,6 +67,17 @@ def collect(run, cfg: TargetlessConfig) -> TargetlessCalibrator:
 FAMILY_OFFSET_SIGMA_S = 0.2 / np.sqrt(12.0)
 
 
+def _errors(camera, T: np.ndarray, cov: np.ndarray | None, T_true: np.ndarray, ref_points: np.ndarray) -> dict:
+    ex, ey = projection_errors(camera, T, T_true, ref_points)
+    r_deg, t_mm = pose_errors(T, T_true)
+    e = {"x_error_px": ex, "y_error_px": ey, "rotation_error_deg": r_deg, "translation_error_mm": t_mm}
+    if cov is not None:
+        e.update({"mahalanobis2": mahalanobis2(T, T_true, cov),
+                  "sigma_rotation_deg": float(np.degrees(np.sqrt(np.max(np.diag(cov)[:3])))),
+                  "sigma_translation_mm": float(1000 * np.sqrt(np.max(np.diag(cov)[3:])))})
+    return e
+
+
 def solve_all(cal, base: TargetlessConfig, solvers, camera, T_true: np.ndarray, ref_points: np.ndarray,
               vdir: np.ndarray | None) -> tuple[dict, dict, dict]:
     """Run each solver on the calibrator's window (one SfM and one odometry shared); each record has the
@@ -87,10 +98,7 @@ def solve_all(cal, base: TargetlessConfig, solvers, camera, T_true: np.ndarray, 
             rec.update({"accepted": False, "reason": str(e)})
             T, cov, metrics = None, None, {}
             if diag.T_final is not None:  # refused by a gate: was the refusal right?
-                ex, ey = projection_errors(camera, diag.T_final, T_true, ref_points)
-                r_deg, t_mm = pose_errors(diag.T_final, T_true)
-                rec["refused_estimate"] = {"x_error_px": ex, "y_error_px": ey, "rotation_error_deg": r_deg,
-                                           "translation_error_mm": t_mm}
+                rec["refused_estimate"] = _errors(camera, diag.T_final, None, T_true, ref_points)
                 rec["metrics"] = {k: v for k, v in diag.metrics.items() if not isinstance(v, str)}
         rec["runtime_s"] = time.perf_counter() - t_start
         for name, Td in (("coarse_estimate", diag.T_oba), ("icp_estimate", diag.T_icp)):
@@ -98,14 +106,9 @@ def solve_all(cal, base: TargetlessConfig, solvers, camera, T_true: np.ndarray, 
                 r_deg, t_mm = pose_errors(Td, T_true)
                 rec[name] = {"rotation_error_deg": r_deg, "translation_error_mm": t_mm}
         if T is not None:
-            ex, ey = projection_errors(camera, T, T_true, ref_points)
-            r_deg, t_mm = pose_errors(T, T_true)
-            rec.update({"x_error_px": ex, "y_error_px": ey, "rotation_error_deg": r_deg,
-                        "translation_error_mm": t_mm, "mahalanobis2": mahalanobis2(T, T_true, cov),
-                        **({"translation_error_along_motion_mm": float(1000 * (T[:3, 3] - T_true[:3, 3]) @ vdir)}
-                           if vdir is not None else {}),
-                        "sigma_rotation_deg": float(np.degrees(np.sqrt(np.max(np.diag(cov)[:3])))),
-                        "sigma_translation_mm": float(1000 * np.sqrt(np.max(np.diag(cov)[3:])))})
+            rec.update(_errors(camera, T, cov, T_true, ref_points))
+            if vdir is not None:
+                rec["translation_error_along_motion_mm"] = float(1000 * (T[:3, 3] - T_true[:3, 3]) @ vdir)
             rec["metrics"] = {k: (float(v) if isinstance(v, (int, float, np.floating, np.integer)) else v)
                               for k, v in metrics.items()}
         recs[s] = rec
@@ -142,17 +145,6 @@ def bench_run(run, seed: int, speed: str, solvers=SOLVERS, cfg: TargetlessConfig
     out["solvers"], cache, _ = solve_all(cal, base, solvers, run.camera, T_true, ref.points, vdir)
     out["sfm_runtime_s"] = float(cache.get("sfm_time", 0.0))
     return out
-
-
-def _errors(camera, T: np.ndarray, cov: np.ndarray | None, T_true: np.ndarray, ref_points: np.ndarray) -> dict:
-    ex, ey = projection_errors(camera, T, T_true, ref_points)
-    r_deg, t_mm = pose_errors(T, T_true)
-    e = {"x_error_px": ex, "y_error_px": ey, "rotation_error_deg": r_deg, "translation_error_mm": t_mm}
-    if cov is not None:
-        e.update({"mahalanobis2": mahalanobis2(T, T_true, cov),
-                  "sigma_rotation_deg": float(np.degrees(np.sqrt(np.max(np.diag(cov)[:3])))),
-                  "sigma_translation_mm": float(1000 * np.sqrt(np.max(np.diag(cov)[3:])))})
-    return e
 
 
 def bench_windows(run, seed: int, speed: str, n_windows: int, known_offset: bool = False) -> dict:
@@ -230,18 +222,23 @@ def bench_windows(run, seed: int, speed: str, n_windows: int, known_offset: bool
     if fused_rec:
         out["solvers"]["ours_fused"] = {**fused_rec, "runtime_s": float(sum(w["runtime_s"] for w in windows))}
     else:
-        # nothing accepted: judged by the refused estimate nearest the truth (refusing it was wrong if it met
-        # the goals)
-        refused = [w["refused_estimate"] for w in windows if "refused_estimate" in w] + \
-            [{k: w[k] for k in ("x_error_px", "y_error_px", "rotation_error_deg", "translation_error_mm")}
-             for w in windows if w["accepted"]]
         n_acc = sum(1 for w in windows if w["accepted"])
-        rec = {"accepted": False, "reason": f"{n_acc} of {len(windows)} windows accepted, no result published",
-               "runtime_s": float(sum(w["runtime_s"] for w in windows))}
-        if refused:
-            rec["refused_estimate"] = min(refused, key=lambda e: max(e["x_error_px"], e["y_error_px"]))
-        out["solvers"]["ours_fused"] = rec
+        out["solvers"]["ours_fused"] = {
+            **_unpublished(windows, f"{n_acc} of {len(windows)} windows accepted, no result published"),
+            "runtime_s": float(sum(w["runtime_s"] for w in windows))}
     return out
+
+
+def _unpublished(windows: list, reason: str) -> dict:
+    """The record of a drive that published nothing, judged by the window estimate nearest the truth,
+    accepted or refused (not publishing was wrong if it met the goals)."""
+    ests = [{k: w[k] for k in ("x_error_px", "y_error_px", "rotation_error_deg", "translation_error_mm")}
+            for w in windows if w.get("accepted")] + \
+        [w["refused_estimate"] for w in windows if "refused_estimate" in w]
+    rec = {"accepted": False, "reason": reason}
+    if ests:
+        rec["refused_estimate"] = min(ests, key=lambda e: max(e["x_error_px"], e["y_error_px"]))
+    return rec
 
 
 def refuse_runs(runs: list, min_windows: int, fuse_windows: int = 10, outlier_p: float = 0.001) -> list:
@@ -249,7 +246,8 @@ def refuse_runs(runs: list, min_windows: int, fuse_windows: int = 10, outlier_p:
     with other fusion settings (exact: the fusion only combines the windows' results). The published result
     is the last fusion that had ``min_windows`` agreeing windows, as the node keeps it."""
     from ..core.camera import CameraModel
-    from ..core.fusion import fuse_estimates
+    from ..targetless.calibrator import fuse_accepted
+    cfg = TargetlessConfig(fuse_min_windows=min_windows, fuse_windows=fuse_windows, fuse_outlier_p=outlier_p)
     out = []
     for r in runs:
         cam = CameraModel(**r["camera"])
@@ -259,21 +257,13 @@ def refuse_runs(runs: list, min_windows: int, fuse_windows: int = 10, outlier_p:
             if not w.get("accepted"):
                 continue
             acc.append(w)
-            recent = acc[-fuse_windows:]
-            f = fuse_estimates([np.asarray(x["T"]) for x in recent], [np.asarray(x["cov"]) for x in recent],
-                               shared=np.mean([np.asarray(x["shared"]) for x in recent], axis=0),
-                               outlier_p=outlier_p)
-            if len(f.used) >= min_windows and f.agree:
-                pub = (f, len(f.used))
+            f, _, publish = fuse_accepted(acc, cfg)
+            if publish:
+                pub = f
         if pub is not None:
-            rec = {"accepted": True, **_errors(cam, pub[0].T, pub[0].cov, T_true, pts), "windows_fused": pub[1]}
+            rec = {"accepted": True, **_errors(cam, pub.T, pub.cov, T_true, pts), "windows_fused": len(pub.used)}
         else:
-            ests = [{k: w[k] for k in ("x_error_px", "y_error_px", "rotation_error_deg", "translation_error_mm")}
-                    for w in r["windows"] if w.get("accepted")] + \
-                [w["refused_estimate"] for w in r["windows"] if "refused_estimate" in w]
-            rec = {"accepted": False, "reason": f"{len(acc)} windows accepted, no result published"}
-            if ests:
-                rec["refused_estimate"] = min(ests, key=lambda e: max(e["x_error_px"], e["y_error_px"]))
+            rec = _unpublished(r["windows"], f"{len(acc)} windows accepted, no result published")
         out.append({**r, "solvers": {**r["solvers"], "ours_fused": rec}})
     return out
 

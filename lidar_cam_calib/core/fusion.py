@@ -91,13 +91,13 @@ def fuse_estimates(Ts: list, covs: list, shared: np.ndarray | None = None, outli
     for i, C in enumerate(Cs):
         if C.shape != (6, 6) or not np.all(np.isfinite(C)):
             raise ValueError(f"estimate {i}: covariance is not a finite 6x6 matrix")
-    Ws = [np.linalg.inv(_own(C, F)) for C in Cs]
+    Cs_own = [_own(C, F) for C in Cs]
+    Ws = [np.linalg.inv(C) for C in Cs_own]
     Ts = [np.asarray(T, float) for T in Ts]
     used = list(range(len(Ts)))
     dropped = []
     limit = float(_chi2.ppf(1.0 - outlier_p, 6))
     med6 = float(_chi2.ppf(0.5, 6))
-    Cs_own = [np.linalg.inv(W) for W in Ws]
 
     def pair(i, j):  # chi2 of two windows' difference (the shared error cancels)
         d = _delta(Ts[i], Ts[j])

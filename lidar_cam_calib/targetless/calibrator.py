@@ -311,6 +311,17 @@ def deskew_sweep(sweep: LidarSweep, T_prev_cur: np.ndarray, cfg: TargetlessConfi
     return out
 
 
+def fuse_accepted(windows: list, cfg: TargetlessConfig) -> tuple:
+    """(fused estimate, the windows it was made from, whether it may be published) for the accepted
+    ``windows`` (dicts with ``T``, ``cov``, ``shared``): the most recent ``cfg.fuse_windows`` fused, published
+    once ``cfg.fuse_min_windows`` of them agree (the node's rule; the bench re-fuses stored windows with it)."""
+    recent = windows[-cfg.fuse_windows:]
+    fused = fuse_estimates([np.asarray(w["T"]) for w in recent], [np.asarray(w["cov"]) for w in recent],
+                           shared=np.mean([np.asarray(w["shared"]) for w in recent], axis=0),
+                           outlier_p=cfg.fuse_outlier_p)
+    return fused, recent, len(fused.used) >= cfg.fuse_min_windows and fused.agree
+
+
 class TargetlessCalibrator:
     """Collects sweeps and images (``add``), calibrates one window (``fit``) and publishes the fusion of
     the accepted windows of the collection (``fuse_windows``); ``next_window`` starts the next window,
@@ -415,10 +426,7 @@ class TargetlessCalibrator:
         shared = diag.shared_cov if diag.shared_cov is not None else np.zeros((6, 6))
         self.windows.append({"T": T, "cov": cov, "shared": shared, "stamps": [f.stamp_s for f in self.images],
                              "index": self.n_windows_tried, "metrics": metrics})
-        recent = self.windows[-self.cfg.fuse_windows:]
-        fused = fuse_estimates([w["T"] for w in recent], [w["cov"] for w in recent],
-                               shared=np.mean([w["shared"] for w in recent], axis=0),
-                               outlier_p=self.cfg.fuse_outlier_p)
+        fused, recent, publish = fuse_accepted(self.windows, self.cfg)
         used = [recent[i] for i in fused.used]
         sw = np.degrees(np.sqrt(np.max(np.diag(cov)[:3]))), 1000 * np.sqrt(np.max(np.diag(cov)[3:]))
         metrics = {**metrics, "window_sigma_rotation_deg": float(sw[0]), "window_sigma_translation_mm": float(sw[1]),
@@ -436,7 +444,7 @@ class TargetlessCalibrator:
             notes.append(f"window {recent[i]['index']} left out: it disagrees with the others (chi2 {c2:.1f}, "
                          f"6 dof, beyond the {100 * (1 - self.cfg.fuse_outlier_p):.1f} % quantile)")
         self.last_fused = fused
-        if len(used) < self.cfg.fuse_min_windows or not fused.agree:
+        if not publish:
             why = (f"the {len(used)} accepted windows disagree (chi2 {fused.chi2:.1f}, 6 dof, beyond the "
                    f"{100 * (1 - self.cfg.fuse_outlier_p):.1f} % quantile): neither is trusted until a third "
                    "decides" if not fused.agree else
