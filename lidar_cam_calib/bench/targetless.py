@@ -33,6 +33,7 @@ import numpy as np
 
 from ..core.errors import CalibError
 from ..core.geometry import inv_T, pose_errors, so3_log, transform_points
+from ..core.result import write_atomic
 from ..targetless.calibrator import (SOLVERS, TargetlessCalibrator, TargetlessConfig, WindowDiagnostics,
                                     calibrate_window)
 from ..targetless.frame import CameraFrame, LidarSweep
@@ -443,11 +444,10 @@ def main(argv=None) -> int:
         print(f"seed {sd} {a.speed} {res['lidar']} {res['speed_kmh']:.0f}km/h: {line}", flush=True)
         if a.json and len(seeds) > 1:  # after every seed: a long run stopped early keeps what it measured
             _write_json(a.json, _family_out(a, seeds[:len(runs)], runs))
-    out = runs[0] if len(runs) == 1 else _family_out(a, seeds, runs)
-    if len(runs) > 1:
-        print(json.dumps(out["summary"], indent=1))
-    if a.json:
-        _write_json(a.json, out)
+    if len(runs) > 1:  # its JSON is written already
+        print(json.dumps(summarise(runs), indent=1))
+    elif a.json:
+        _write_json(a.json, runs[0])
     return 0
 
 
@@ -457,12 +457,7 @@ def _family_out(a, seeds: list, runs: list) -> dict:
 
 
 def _write_json(path: str, out: dict) -> None:
-    """Atomically (a temporary file renamed over ``path``)."""
-    import os
-    tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(out, fh, indent=1, default=float)
-    os.replace(tmp, path)
+    write_atomic(path, json.dumps(out, indent=1, default=float), keep_bak=False)
 
 
 if __name__ == "__main__":
