@@ -227,10 +227,16 @@ class TargetlessConfig:
     ours_min_edge_views: int = cfg_field(4, "ours, pose mode, gate: fewest images whose LiDAR edges are seen",
                                          range=(2, 30))
     ours_edge_floor_deg: float = cfg_field(0.07, "ours, pose mode: 1-sigma per axis added to the rotation for "
-                                                 "what all images share (LiDAR edge placement, camera model)",
+                                                 "what all images share (LiDAR edge placement, camera model), "
+                                                 "at the focal length ours_edge_floor_fx_px",
                                            range=(0.0, 10.0))
     ours_edge_floor_m: float = cfg_field(0.015, "ours, pose mode: the same for the translation",
                                          range=(0.0, 1.0))
+    ours_edge_floor_fx_px: float = cfg_field(
+        460.0, "ours, pose mode: the focal length (px) at which the two floors hold; they scale with the pixel's "
+               "angle, this / fx (measured: the edge fit's drift from the truth halves from 644 to 1288 px wide "
+               "images; 460 px is the median focal length of the 644 px wide family the floors were set on)",
+        range=(1.0, 1e5))
     ours_edge_images: int = cfg_field(8, "ours: images of the window the edge refinement uses", range=(1, 30))
     ours_edge_full: bool = cfg_field(True, "ours: after the 1-D search along the driving direction, a small 3-D "
                                            "translation refinement")
@@ -1008,8 +1014,9 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         # images share (the LiDAR edge placement, the camera model), and the clock along the drive
         cov = pe.cov.copy()
         shared = np.zeros((6, 6))
-        shared[:3, :3] = np.eye(3) * math.radians(cfg.ours_edge_floor_deg) ** 2
-        shared[3:, 3:] = np.eye(3) * cfg.ours_edge_floor_m ** 2 + \
+        px = cfg.ours_edge_floor_fx_px / cam.fx     # the floors scale with the pixel's angle
+        shared[:3, :3] = np.eye(3) * math.radians(cfg.ours_edge_floor_deg * px) ** 2
+        shared[3:, 3:] = np.eye(3) * (cfg.ours_edge_floor_m * px) ** 2 + \
             np.outer(vdir, vdir) * (speed * cfg.time_offset_sigma_s) ** 2
         cov += shared
         diag.shared_cov = shared
