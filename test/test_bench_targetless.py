@@ -1,0 +1,35 @@
+"""The targetless bench's clock prior and its per-window records (no simulation: these are the pieces that
+decide what the calibrator is told and what the JSON keeps)."""
+from __future__ import annotations
+
+import math
+import types
+
+import numpy as np
+
+from lidar_cam_calib.bench.targetless import FAMILY_OFFSET_SIGMA_S, _numeric, _offset_prior
+
+
+def test_offset_prior_unknown_is_zero_with_the_family_spread():
+    run = types.SimpleNamespace(time_offset_s=0.07)
+    assert _offset_prior(run, 5, False, 0.0005) == (0.0, float(FAMILY_OFFSET_SIGMA_S))
+
+
+def test_offset_prior_known_carries_a_drawn_error_of_the_told_sigma():
+    run = types.SimpleNamespace(time_offset_s=0.07)
+    told, sigma = _offset_prior(run, 5, True, 0.0005)
+    assert sigma == 0.0005 and told != 0.07
+    assert _offset_prior(run, 5, True, 0.0005) == (told, sigma)      # the same seed, the same draw
+    errs = np.array([_offset_prior(run, s, True, 0.0005)[0] - 0.07 for s in range(400)])
+    # the drawn errors have the sigma the calibrator is told (the covariance check relies on it)
+    assert abs(errs.mean()) < 4 * 0.0005 / math.sqrt(400)
+    assert 0.85 * 0.0005 < errs.std() < 1.15 * 0.0005
+    assert _offset_prior(run, 5, True, 0.0) == (0.07, 0.0)             # an exact clock when asked
+
+
+def test_numeric_keeps_numbers_only():
+    m = {"edge_inliers": np.float64(0.61), "edge_views": np.int64(8), "hausdorff_m": 0.02, "flag": True,
+         "why": "text", "arr": [1, 2]}
+    out = _numeric(m)
+    assert out == {"edge_inliers": 0.61, "edge_views": 8.0, "hausdorff_m": 0.02}
+    assert all(type(v) is float for v in out.values()) and _numeric(None) == {}
