@@ -73,7 +73,7 @@ from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
-from .edges import EdgeConfig, EdgeView, azimuth_step_rad, refine_pose, refine_translation, yaw_about_edges
+from .edges import EdgeConfig, EdgeView, refine_pose, refine_translation, yaw_about_edges
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, point_motion,
                       voxel_down)
 from .frame import CameraFrame, LidarSweep
@@ -215,14 +215,9 @@ class TargetlessConfig:
               "as the result: the covariance is at least the spread of such fits about the result (measured: "
               "on windows within the goals the starts return within ~1 cm; on windows 5-20 px off they stop "
               "5-10 cm apart with inliers 0.01-0.03 apart)", range=(0.0, 1.0))
-    ours_min_edge_inliers: float = cfg_field(0.5, "ours, pose mode, gate: fewest LiDAR edge points within the "
-                                                  "inlier tolerance of an image edge after the refinement (a "
-                                                  "fraction)", range=(0.0, 1.0))
-    ours_edge_inlier_steps: float = cfg_field(
-        0.6, "ours, pose mode: the inlier tolerance is at least this many of the LiDAR's column steps (measured "
-             "from the sweep) in pixels, and at least edges.inlier_px (measured at 1288 px: an Ouster 1024-column "
-             "LiDAR's correct fits met 40-49 % of the edges within 1.5 px, where a 0.17 deg HDL-64's met 60-90 %)",
-        range=(0.0, 10.0))
+    ours_min_edge_inliers: float = cfg_field(0.5, "ours, pose mode, gate: fewest LiDAR edge points within 1.5 px "
+                                                  "of an image edge after the refinement (a fraction)",
+                                             range=(0.0, 1.0))
     ours_max_prior_conflict: float = cfg_field(
         16.3, "ours, pose mode, gate: the largest squared, prior-normalised move of the edge fit's tilt and "
               "height away from where the ground planes put them (ours_edge_tilt_prior_deg, "
@@ -731,13 +726,6 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     # marked; they rank the coarse translations and refine the extrinsic
     views = []
     if ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "pose":
-        # an edge point meets an image edge within the inlier tolerance: at least a share of the LiDAR's
-        # column step as the camera sees it (a silhouette lies anywhere within one step of its point)
-        step = azimuth_step_rad(ref_sweep.points)
-        if np.isfinite(step):
-            tol = max(cfg.edges.inlier_px, cfg.ours_edge_inlier_steps * cam.fx * step)
-            cfg = dataclasses.replace(cfg, edges=dataclasses.replace(cfg.edges, inlier_px=tol))
-        edge_tol = {"lidar_azimuth_step_deg": math.degrees(step), "edge_inlier_px": cfg.edges.inlier_px}
         static_cache: dict = {jr: (lid, motion <= cfg.dynamic_dist_m)}  # sweep -> (de-skewed, static)
         for k in range(min(cfg.ours_edge_images, len(images))):
             jk = int(np.argmin(np.abs(stamps_u - t_img[k])))
@@ -763,8 +751,6 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                          f"{max_sig * 100:.0f} cm: the camera barely moved sideways to the scene "
                          "(drive past objects, not towards them)")
     metrics_pre = {"camera_cloud_points": int(cloud_s.shape[0])}
-    if views:
-        metrics_pre.update(edge_tol)
     # -- level both clouds
     Ls = _level(cloud_s, np.array([0.0, -1.0, 0.0]), rng)
     Ll = _level(lid, np.array([0.0, 0.0, 1.0]), rng)
@@ -1111,8 +1097,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                          "cars and road paint close to the camera)")
     if ours and pe is not None and (pe.n_views < cfg.ours_min_edge_views or pe.inliers < cfg.ours_min_edge_inliers):
         raise CalibError(f"gate failed: the LiDAR edges do not meet the image edges well enough "
-                         f"({pe.inliers * 100:.0f} % within {cfg.edges.inlier_px:.1f} px, "
-                         f">= {cfg.ours_min_edge_inliers * 100:.0f} % "
+                         f"({pe.inliers * 100:.0f} % within 1.5 px, >= {cfg.ours_min_edge_inliers * 100:.0f} % "
                          f"needed, over {pe.n_views} images, >= {cfg.ours_min_edge_views} needed); "
                          "calibration rejected (drive past poles, trunks, parked cars and road paint close to "
                          "the camera)")

@@ -62,9 +62,6 @@ class EdgeConfig:
                                            range=(0.0, 20.0))
     pose_fine_blur_px: float = cfg_field(1.0, "6-DoF refinement: blur of the fine distance field", range=(0.0, 20.0))
     pose_cauchy_px: float = cfg_field(1.5, "6-DoF refinement: Cauchy scale of the fine stage", range=(0.1, 20.0))
-    inlier_px: float = cfg_field(1.5, "6-DoF refinement: an edge point within this of an image edge is an inlier "
-                                      "(the fraction that meets the edges; the calibrator widens it to the "
-                                      "LiDAR's column step)", range=(0.1, 50.0))
     min_points: int = cfg_field(150, "fewest visible LiDAR edge points (all images)", range=(10, 100000))
     pose_max_points: int = cfg_field(2000, "6-DoF refinement: at most this many visible edge points per image, "
                                            "evenly spaced along the scan (a dense LiDAR's 6000 cost 3x the "
@@ -340,27 +337,6 @@ def yaw_about_edges(views: list, X: np.ndarray, up: np.ndarray, deg: float) -> n
     return D @ X
 
 
-def azimuth_step_rad(points: np.ndarray, n_queries: int = 20000) -> float:
-    """The spinning LiDAR's column step (rad) from one sweep, with no ring field needed: in (azimuth,
-    elevation) about the sensor, each point's nearest neighbour, with elevation differences weighed 50x so
-    that only a point of the same ring (the same elevation) can be nearest, lies one column away; the
-    median over ``n_queries`` points drawn evenly at random (the tree holds them all: thinning the cloud
-    would widen the gaps). NaN for fewer than 100 points."""
-    p = np.asarray(points, float).reshape(-1, 3)
-    p = p[np.linalg.norm(p, axis=1) > 0.5]
-    if p.shape[0] < 100:
-        return float("nan")
-    from scipy.spatial import cKDTree
-    az = np.arctan2(p[:, 1], p[:, 0])
-    el = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
-    q = np.column_stack([az, 50.0 * el])
-    sel = np.random.default_rng(0).choice(q.shape[0], min(n_queries, q.shape[0]), replace=False)
-    d, _ = cKDTree(q).query(q[sel], k=2)
-    d = d[:, 1]
-    d = d[d > 1e-7]                 # duplicated returns
-    return float(np.median(d)) if d.size >= 50 else float("nan")
-
-
 @dataclasses.dataclass
 class PoseEdgeResult:
     T: np.ndarray                   # refined extrinsic (camera <- LiDAR at the exposure)
@@ -368,7 +344,7 @@ class PoseEdgeResult:
     cov: np.ndarray                 # (6,6) its covariance (camera frame), dispersion-scaled
     cost0: float                    # mean truncated edge distance at the start (px)
     cost: float                     # ... at the optimum
-    inliers0: float                 # fraction of edge points within inlier_px of an image edge at the start
+    inliers0: float                 # fraction of edge points within 1.5 px of an image edge at the start
     inliers: float                  # ... at the optimum
     n_points: int
     n_views: int
@@ -591,10 +567,9 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     T[:3, :3] = so3_exp(xi[:3]) @ X[:3, :3]
     T[:3, 3] = so3_exp(xi[:3]) @ X[:3, 3] + xi[3:]
     return PoseEdgeResult(T=T, xi=xi, cov=B @ Hinv @ B.T * scale, cost0=float(r0.mean()), cost=float(r1.mean()),
-                          inliers0=float(np.mean(r0 < cfg.inlier_px)), inliers=float(np.mean(r1 < cfg.inlier_px)),
-                          n_points=n,
+                          inliers0=float(np.mean(r0 < 1.5)), inliers=float(np.mean(r1 < 1.5)), n_points=n,
                           n_views=len(V), dispersion=scale / max(naive, 1e-12))
 
 
-__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "azimuth_step_rad", "image_distance",
-           "lidar_edges", "prepare_view", "proj_jacobian", "refine_pose", "refine_translation", "yaw_about_edges"]
+__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "image_distance", "lidar_edges",
+           "prepare_view", "proj_jacobian", "refine_pose", "refine_translation", "yaw_about_edges"]
