@@ -85,8 +85,16 @@ def _offset_prior(run, seed: int, known_offset: bool, sigma_s: float) -> tuple[f
     check then reads a too-wide covariance as honest). Unknown: 0 with the family's spread."""
     if not known_offset:
         return 0.0, float(FAMILY_OFFSET_SIGMA_S)
-    err = float(np.random.default_rng([int(seed), 7001]).normal(0.0, sigma_s)) if sigma_s > 0 else 0.0
+    err = float(np.random.default_rng([int(seed), 7001]).normal(0.0, sigma_s))
     return float(run.time_offset_s) + err, float(sigma_s)
+
+
+def _base_config(run, seed: int, known_offset: bool, sigma_s: float) -> TargetlessConfig:
+    """The calibrator's settings for a simulated drive: the clock as ``_offset_prior`` tells it, and the
+    paper's 10 px motion threshold (for 1288 px wide images) scaled to the camera's width."""
+    told_s, sigma = _offset_prior(run, seed, known_offset, sigma_s)
+    return TargetlessConfig(min_motion_px=10.0 * run.camera.width / 1288.0, time_offset_s=told_s,
+                            time_offset_sigma_s=sigma)
 
 
 def _numeric(metrics: dict | None) -> dict:
@@ -147,13 +155,11 @@ def bench_run(run, seed: int, speed: str, solvers=SOLVERS, cfg: TargetlessConfig
               known_offset: bool = False, offset_sigma_s: float = DEFAULT_OFFSET_SIGMA_S) -> dict:
     """``known_offset``: the calibrator is told the simulated clock offset as a clock synchronisation
     would (``_offset_prior``); otherwise it assumes 0 with the family's spread as its prior."""
-    # the paper's 10 px motion threshold is for 1288 px wide images
-    told_s, sigma_s = _offset_prior(run, seed, known_offset, offset_sigma_s)
-    base = cfg or TargetlessConfig(min_motion_px=10.0 * run.camera.width / 1288.0, time_offset_s=told_s,
-                                   time_offset_sigma_s=sigma_s)
+    base = cfg or _base_config(run, seed, known_offset, offset_sigma_s)
     cal = collect(run, base)
     out = {"method": "targetless", "seed": seed, "speed": speed, "speed_kmh": float(run.mean_speed_kmh),
-           "known_offset": bool(known_offset), "told_offset_s": told_s, "told_offset_sigma_s": sigma_s,
+           "known_offset": bool(known_offset), "told_offset_s": base.time_offset_s,
+           "told_offset_sigma_s": base.time_offset_sigma_s,
            "lidar": getattr(run.lidar, "name", str(run.lidar)), "time_offset_s": float(run.time_offset_s),
            "solvers": {}}
     if not cal.ready():
@@ -180,9 +186,7 @@ def bench_windows(run, seed: int, speed: str, n_windows: int, known_offset: bool
     ones (``fuse_windows``). Solvers in the record: ``ours`` (the first window alone, as ``bench_run``) and
     ``ours_fused`` (what is published after the last window); ``windows``: every window's own outcome and,
     when accepted, the fused result's errors at that point."""
-    told_s, sigma_s = _offset_prior(run, seed, known_offset, offset_sigma_s)
-    base = TargetlessConfig(min_motion_px=10.0 * run.camera.width / 1288.0, time_offset_s=told_s,
-                            time_offset_sigma_s=sigma_s)
+    base = _base_config(run, seed, known_offset, offset_sigma_s)
     T_true = np.asarray(run.T_camera_lidar)
     cal = TargetlessCalibrator(base)
     events = [(sw.stamp_s, 0, sw) for sw in run.sweeps] + \
@@ -236,8 +240,8 @@ def bench_windows(run, seed: int, speed: str, n_windows: int, known_offset: bool
         cal.next_window()
     ref0 = min(run.sweeps, key=lambda sw: abs(sw.stamp_s - windows[0]["first_image_s"])) if windows else None
     out = {"method": "targetless", "seed": seed, "speed": speed, "speed_kmh": float(run.mean_speed_kmh),
-           "known_offset": bool(known_offset), "told_offset_s": told_s, "told_offset_sigma_s": sigma_s,
-           "lidar": getattr(run.lidar, "name", str(run.lidar)),
+           "known_offset": bool(known_offset), "told_offset_s": base.time_offset_s,
+           "told_offset_sigma_s": base.time_offset_sigma_s, "lidar": getattr(run.lidar, "name", str(run.lidar)),
            "time_offset_s": float(run.time_offset_s), "windows": windows, "solvers": {},
            "T_true": T_true.tolist(),
            "camera": {"width": run.camera.width, "height": run.camera.height, "K": run.camera.K.tolist(),
