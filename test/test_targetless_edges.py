@@ -289,3 +289,22 @@ def test_edge_basins_widen_the_covariance_towards_an_equally_good_basin():
     worse = dataclasses.replace(good, T=Xoff, inliers=good.inliers - 0.05)
     best, _, _, _ = _edge_basins(views, cam, worse, np.eye(4), link, cfg, X)
     assert best is not worse and np.linalg.norm(best.T[:3, 3] - X[:3, 3]) < 0.02
+
+
+def test_azimuth_step_from_one_sweep_of_each_preset():
+    """The LiDAR's column step, which sets the share of edge points the edge gate asks for, from the points
+    alone: every preset (Ouster's staggered beams included), with a third of the returns missing, the cloud
+    stored column by column or ring by ring (as KITTI's files are); NaN when there is nothing to measure."""
+    from lidar_cam_calib.sim.lidar import PRESETS
+    from lidar_cam_calib.targetless.edges import azimuth_step_rad
+    rng = np.random.default_rng(4)
+    for name, pr in PRESETS.items():
+        d, ring, _, _ = pr.ray_directions()
+        p = d * rng.uniform(2.0, 40.0, d.shape[0])[:, None]
+        keep = rng.random(d.shape[0]) > 0.33
+        for order in (np.arange(d.shape[0]), np.argsort(ring, kind="stable")):
+            q = p[order][keep[order]]
+            assert abs(np.degrees(azimuth_step_rad(q)) - pr.azimuth_step_deg) < 0.02 * pr.azimuth_step_deg, name
+    assert np.isnan(azimuth_step_rad(np.zeros((50, 3))))
+    assert np.isnan(azimuth_step_rad(rng.normal(size=(20, 3))))
+    assert np.isnan(azimuth_step_rad(np.full((500, 3), np.nan)))

@@ -337,6 +337,28 @@ def yaw_about_edges(views: list, X: np.ndarray, up: np.ndarray, deg: float) -> n
     return D @ X
 
 
+def azimuth_step_rad(points: np.ndarray, n_queries: int = 20000) -> float:
+    """The spinning LiDAR's column step (rad) from one sweep, with no ring field needed: in (azimuth,
+    elevation) about the sensor, each point's nearest neighbour, with elevation differences weighed 50x so
+    that only a point of the same ring (the same elevation) can be nearest, lies one column away; the
+    median over ``n_queries`` points drawn evenly at random (the tree holds them all: thinning the cloud
+    would widen the gaps). NaN for fewer than 100 points."""
+    p = np.asarray(points, float).reshape(-1, 3)
+    p = p[np.isfinite(p).all(axis=1)]
+    p = p[np.linalg.norm(p, axis=1) > 0.5]
+    if p.shape[0] < 100:
+        return float("nan")
+    from scipy.spatial import cKDTree
+    az = np.arctan2(p[:, 1], p[:, 0])
+    el = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+    q = np.column_stack([az, 50.0 * el])
+    sel = np.random.default_rng(0).choice(q.shape[0], min(n_queries, q.shape[0]), replace=False)
+    d, _ = cKDTree(q).query(q[sel], k=2)
+    d = d[:, 1]
+    d = d[d > 1e-7]                 # duplicated returns
+    return float(np.median(d)) if d.size >= 50 else float("nan")
+
+
 @dataclasses.dataclass
 class PoseEdgeResult:
     T: np.ndarray                   # refined extrinsic (camera <- LiDAR at the exposure)
@@ -571,5 +593,5 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
                           n_views=len(V), dispersion=scale / max(naive, 1e-12))
 
 
-__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "image_distance", "lidar_edges",
-           "prepare_view", "proj_jacobian", "refine_pose", "refine_translation", "yaw_about_edges"]
+__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "azimuth_step_rad", "image_distance",
+           "lidar_edges", "prepare_view", "proj_jacobian", "refine_pose", "refine_translation", "yaw_about_edges"]
