@@ -159,22 +159,17 @@ def image_distance(image: np.ndarray, cfg: EdgeConfig) -> np.ndarray:
     return cv2.distanceTransform(255 - e, cv2.DIST_L2, 5).astype(np.float32)
 
 
-def _sample(img: np.ndarray, uv: np.ndarray, layer: np.ndarray | None = None) -> np.ndarray:
-    """Bilinear sample of ``img`` at (N,2) pixels (clamped inside the image): (N,) or (N,C).
-
-    ``img``: (H,W), (H,W,C), or with ``layer`` (N,) a stack (L,H,W) / (L,H,W,C) sampled in layer
-    ``layer[i]`` for point i. One gather per corner on the flattened stack, however many channels."""
-    stacked = layer is not None
-    h, w = img.shape[1:3] if stacked else img.shape[:2]
-    chan = img.ndim > (3 if stacked else 2)
+def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear sample of ``img`` (H,W) or (H,W,C) at (N,2) pixels (clamped inside the image): (N,) or
+    (N,C). One gather per corner, however many channels."""
+    h, w = img.shape[:2]
+    chan = img.ndim > 2
     x = np.clip(uv[:, 0], 0, w - 1.001)
     y = np.clip(uv[:, 1], 0, h - 1.001)
     x0, y0 = x.astype(np.intp), y.astype(np.intp)
     fx, fy = x - x0, y - y0
     flat = img.reshape(-1, img.shape[-1] if chan else 1)
     i = y0 * w + x0
-    if stacked:
-        i += layer * (h * w)
     a, b = (1 - fx) * (1 - fy), fx * (1 - fy)
     c, d = (1 - fx) * fy, fx * fy
     out = (np.take(flat, i, axis=0) * a[:, None] + np.take(flat, i + 1, axis=0) * b[:, None]
@@ -311,6 +306,7 @@ class EdgeView:
     T_sweep_img: np.ndarray         # LiDAR at the sweep stamp <- LiDAR at this exposure
     edges: np.ndarray | None = None  # (M,3) its LiDAR edges (de-skewed), filled by prepare_view
     dist: np.ndarray | None = None   # the image's edge-distance map, filled by prepare_view
+    fields: dict = dataclasses.field(default_factory=dict, repr=False)  # (truncation, blur) -> _field(dist)
 
 
 def prepare_view(v: EdgeView, cfg: EdgeConfig) -> EdgeView:
@@ -373,16 +369,28 @@ class PoseEdgeResult:
     dispersion: float               # scatter of the per-image optima over what their information predicts
 
 
-def _field(dist: np.ndarray, trunc: float, blur: float):
-    """Truncated, smoothed edge-distance field (from ``image_distance``), and the field with its gradient
-    (px per px) stacked as (H,W,3) so that one bilinear gather samples all three."""
+def _field(dist: np.ndarray, trunc: float, blur: float) -> np.ndarray:
+    """Truncated, smoothed edge-distance field (from ``image_distance``) with its gradient (px per px),
+    stacked as (H,W,3) so that one bilinear gather samples all three."""
     import cv2
     f = np.minimum(dist, trunc).astype(np.float32)
     if blur > 0:
         f = cv2.GaussianBlur(f, (0, 0), blur)
     gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    return f, np.ascontiguousarray(np.stack([f, gx, gy], axis=2))
+    return np.ascontiguousarray(np.stack([f, gx, gy], axis=2))
+
+
+def view_field(v: EdgeView, trunc: float, blur: float, grad: bool = True) -> np.ndarray:
+    """The view's ``_field`` at (``trunc``, ``blur``) (``grad`` False: the truncated distance alone, (H,W)),
+    computed once per view: a window's fits (the coarse ranking, the restarts, the basin starts, the
+    jackknife) all sample the same few fields."""
+    key = (float(trunc), float(blur), bool(grad))
+    f = v.fields.get(key)
+    if f is None:
+        f = _field(v.dist, trunc, blur) if grad else np.minimum(v.dist, trunc).astype(np.float32)
+        v.fields[key] = f
+    return f
 
 
 def proj_jacobian(K: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -471,19 +479,21 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         if idx.size > cfg.pose_max_points:  # evenly thinned (the edges come in scan order)
             idx = idx[np.linspace(0, idx.size - 1, cfg.pose_max_points).astype(int)]
         # the edge points in the camera frame at X (perturbed on the left from here on)
-        V.append({"q": transform_points(Tk, E[idx]), "dist": v.dist})
+        V.append({"q": transform_points(Tk, E[idx]), "view": v})
     n = sum(v["q"].shape[0] for v in V)
     if len(V) < 2 or n < cfg.min_points:
         return None
-    # all views at once: their points stacked, each sampling its own image's field (layer)
+    # all views at once: their points stacked, each sampling its own image's field
     Q = np.concatenate([v["q"] for v in V])
     sizes = [v["q"].shape[0] for v in V]
-    layer = np.repeat(np.arange(len(V)), sizes)
     cuts = np.cumsum(sizes)[:-1]
 
-    def fields(trunc: float, blur: float):
-        ff = [_field(v["dist"], trunc, blur) for v in V]
-        return np.stack([a for a, _ in ff]), np.stack([b for _, b in ff])
+    def fields(trunc: float, blur: float, grad: bool = True) -> list:
+        return [view_field(v["view"], trunc, blur, grad) for v in V]
+
+    def sample(fld: list, uv: np.ndarray) -> np.ndarray:
+        """The views' points each sampled in its own image's field: (N,3) field, gx, gy, or (N,)."""
+        return np.concatenate([_sample(f, p) for f, p in zip(fld, np.split(uv, cuts))])
 
     def per_view(rJ):
         r, J = rJ
@@ -518,9 +528,9 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         """The views' field values at xi (N,), with their Jacobian (N,m): f, gx, gy in one gather."""
         q = apply(xi, Q)
         uv, _ = cam.project(q)
+        s3 = sample(fld, uv)
         if not with_jac:
-            return _sample(fld[0], uv, layer)
-        s3 = _sample(fld[1], uv, layer)
+            return s3 if s3.ndim == 1 else s3[:, 0]
         J = field_jacobian(K, q, s3[:, 1:])
         return s3[:, 0], (J if m == 6 else J @ B)
 
@@ -565,7 +575,6 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         if 0 < i < len(s) - 1:
             xi[3:] = s[i] * d
     xi = lm(xi, coarse, 3.0)
-    del coarse
     fine = fields(cfg.truncate_px, cfg.pose_fine_blur_px)
     c = cfg.pose_cauchy_px
     xi = lm(xi, fine, c)
@@ -575,7 +584,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         P = Pt * _scale(H_, g_, var_, m)
         xi = lm(xi, fine, c)
     # statistics at the optimum
-    raw_f = (np.stack([np.minimum(v["dist"], cfg.truncate_px) for v in V]), None)
+    raw_f = fields(cfg.truncate_px, 0.0, grad=False)
     r0 = residuals(np.zeros(6), raw_f)
     r1 = residuals(xi, raw_f)
     Hs, gs, naive = _stats(per_view(residuals(xi, fine, True)), c)
