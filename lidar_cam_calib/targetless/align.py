@@ -195,7 +195,7 @@ def hough_align(A: ObjectSet, B: ObjectSet, cfg: AlignConfig | None = None, yaw_
 def estimate_normals(pts: np.ndarray, tree: cKDTree, k: int = 12) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals and planarity-based weights (N,) from k-neighbour PCA."""
     k = min(k, pts.shape[0])
-    _, nn = tree.query(pts, k=k)
+    _, nn = tree.query(pts, k=k, workers=-1)
     nb = pts[nn]
     d = nb - nb.mean(axis=1, keepdims=True)
     C = np.einsum("nki,nkj->nij", d, d) / k
@@ -237,7 +237,7 @@ def icp_point_to_plane(src: np.ndarray, dst: np.ndarray, T0: np.ndarray, cfg: Al
     rms, ncorr, sig = np.inf, 0, np.inf
     for it in range(nit):
         p = scale * (src @ R.T + t)
-        dist, nn = tree.query(p, k=1, distance_upper_bound=dmax)
+        dist, nn = tree.query(p, k=1, distance_upper_bound=dmax, workers=-1)
         ok = np.isfinite(dist)
         ncorr = int(ok.sum())
         if ncorr < 10:
@@ -364,7 +364,7 @@ def icp_translation(cam: np.ndarray, cam_normals: np.ndarray, lidar_rot: np.ndar
     wext = np.ones(cam.shape[0]) if cam_weights is None else cam_weights
     H, rms, sig, ncorr = np.eye(3), np.inf, np.inf, 0
     for it in range(cfg.icp_iterations):
-        dist, nn = tree.query(cam - t, k=1, distance_upper_bound=dmax)
+        dist, nn = tree.query(cam - t, k=1, distance_upper_bound=dmax, workers=-1)
         ok = np.isfinite(dist)
         ncorr = int(ok.sum())
         if ncorr < 10:

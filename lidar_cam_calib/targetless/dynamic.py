@@ -89,7 +89,7 @@ def _link_fit(src: np.ndarray, tgt: np.ndarray, tree: cKDTree, nrm: np.ndarray, 
     if best is None:
         return None, -1
     q = src @ best.T[:3, :3].T + best.T[:3, 3]
-    d, nn = tree.query(q, k=1, distance_upper_bound=1.0)
+    d, nn = tree.query(q, k=1, distance_upper_bound=1.0, workers=-1)
     ok = np.isfinite(d)
     ok[ok] = np.abs(nrm[nn[ok], 2]) < 0.7
     pl = np.abs(np.einsum("ij,ij->i", q[ok] - tgt[nn[ok]], nrm[nn[ok]]))
@@ -194,7 +194,7 @@ def point_motion(ref_cloud: np.ndarray, other_clouds: list, T_ref_others: list) 
     d = np.full(ref_cloud.shape[0], np.inf)
     for c, T in zip(other_clouds, T_ref_others):
         q = np.asarray(c, float) @ T[:3, :3].T + T[:3, 3]
-        dist, _ = cKDTree(q).query(ref_cloud, k=1, distance_upper_bound=5.0)
+        dist, _ = cKDTree(q).query(ref_cloud, k=1, distance_upper_bound=5.0, workers=-1)
         d = np.minimum(d, np.where(np.isfinite(dist), dist, 5.0))
     return d
 
