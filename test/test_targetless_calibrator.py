@@ -322,3 +322,20 @@ def test_predicted_projection_error_sees_near_points_through_the_lens():
         ex.append(a)
         ey.append(b)
     assert px > 2.0 and px == pytest.approx(np.mean(ex), rel=0.15) and py == pytest.approx(np.mean(ey), rel=0.15)
+
+
+def test_edge_gate_share_follows_the_lidar_column_step():
+    """The edge gate asks for 50 % of the edge points within 1.5 px up to a column step of 3.5 px (an
+    HDL-64 at 1288 px), and for less in proportion beyond (an Ouster 1024-column LiDAR at fx 1190 sees
+    its 0.35 deg step as 7.3 px); an unknown step leaves the share as configured."""
+    import math
+    from lidar_cam_calib.targetless.calibrator import TargetlessConfig, edge_inliers_needed
+    cfg = TargetlessConfig()
+    assert edge_inliers_needed(cfg, 2.2) == cfg.ours_min_edge_inliers == 0.5
+    assert edge_inliers_needed(cfg, 3.5) == 0.5
+    os1 = edge_inliers_needed(cfg, 1190.0 * math.radians(360.0 / 1024))
+    assert 0.23 < os1 < 0.25
+    assert edge_inliers_needed(cfg, 7.0) == pytest.approx(0.25)
+    assert edge_inliers_needed(cfg, float("nan")) == 0.5
+    wide = dataclasses.replace(cfg, ours_edge_inliers_step_px=10.0)
+    assert edge_inliers_needed(wide, 7.0) == 0.5

@@ -643,6 +643,17 @@ def _widen(pe, B: np.ndarray, metrics: dict, key: str):
         return pe
 
 
+def edge_inliers_needed(cfg: TargetlessConfig, step_px: float) -> float:
+    """The share of LiDAR edge points within 1.5 px of an image edge that the edge gate and the coarse
+    ranking ask for, given the LiDAR's column step as the camera sees it (px; NaN: unknown):
+    ``ours_min_edge_inliers`` up to a step of ``ours_edge_inliers_step_px``, falling as that / step beyond
+    (an edge point lies anywhere within a step of the true edge, so the share of correct points within a
+    fixed tolerance falls as the step widens)."""
+    if np.isfinite(step_px) and step_px > cfg.ours_edge_inliers_step_px:
+        return cfg.ours_min_edge_inliers * cfg.ours_edge_inliers_step_px / step_px
+    return cfg.ours_min_edge_inliers
+
+
 def _rank_candidates(fits: list, same_m: float = 0.5) -> tuple[int | None, float]:
     """(index of the fit whose edges meet best, its inlier fraction over the best of the fits that
     ended elsewhere (> ``same_m`` apart; inf when none did)); (None, nan) when no fit has edges."""
@@ -741,8 +752,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         # one the inlier share was set on, fewer correct points are within 1.5 px; ask for that many less
         step = azimuth_step_rad(ref_sweep.points)
         step_px = float(cam.K[0, 0]) * step
-        if np.isfinite(step_px) and step_px > cfg.ours_edge_inliers_step_px:
-            min_inliers *= cfg.ours_edge_inliers_step_px / step_px
+        min_inliers = edge_inliers_needed(cfg, step_px)
         metrics_step = {"lidar_azimuth_step_deg": math.degrees(step), "edge_step_px": step_px,
                         "edge_inliers_needed": min_inliers}
         static_cache: dict = {jr: (lid, motion <= cfg.dynamic_dist_m)}  # sweep -> (de-skewed, static)
