@@ -333,8 +333,7 @@ def test_edge_gate_share_follows_the_lidar_column_step():
     """The edge gate asks for 50 % of the edge points within 1.5 px up to a column step of 3.5 px (an
     HDL-64 at 1288 px), and for less in proportion beyond (an Ouster 1024-column LiDAR at fx 1190 sees
     its 0.35 deg step as 7.3 px); an unknown step leaves the share as configured."""
-    import math
-    from lidar_cam_calib.targetless.calibrator import TargetlessConfig, edge_inliers_needed
+    from lidar_cam_calib.targetless.calibrator import edge_inliers_needed
     cfg = TargetlessConfig()
     assert edge_inliers_needed(cfg, 2.2) == cfg.ours_min_edge_inliers == 0.5
     assert edge_inliers_needed(cfg, 3.5) == 0.5

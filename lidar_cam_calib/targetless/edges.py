@@ -306,7 +306,7 @@ class EdgeView:
     T_sweep_img: np.ndarray         # LiDAR at the sweep stamp <- LiDAR at this exposure
     edges: np.ndarray | None = None  # (M,3) its LiDAR edges (de-skewed), filled by prepare_view
     dist: np.ndarray | None = None   # the image's edge-distance map, filled by prepare_view
-    fields: dict = dataclasses.field(default_factory=dict, repr=False)  # (truncation, blur) -> _field(dist)
+    fields: dict = dataclasses.field(default_factory=dict, repr=False)  # filled by view_field
 
 
 def prepare_view(v: EdgeView, cfg: EdgeConfig) -> EdgeView:
