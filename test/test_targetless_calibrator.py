@@ -219,8 +219,13 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     # the same window with a stricter edge gate and one coarse candidate (the highest bird's-eye peak, as the
     # config documents; it used to fail unpacking the peak search's result): no ranking, refused with the
     # reason, and the accepted window stays
-    cal.cfg = dataclasses.replace(cfg, ours_min_edge_inliers=0.99, ours_coarse_candidates=1)
-    with pytest.raises(CalibError, match="LiDAR edges do not meet the image edges.*1 accepted before, kept"):
+    assert m["lidar_rings"] == 64 and abs(m["lidar_ring_spacing_deg"] - 0.5) < 0.05
+    assert cal.lidar_rings[0] == 64 and abs(cal.lidar_rings[1] - 0.5) < 0.05 and cal.sparse_lidar_advice() == ""
+    # (with the sparse-LiDAR advice's threshold below the HDL-64's 0.5 deg, the refusal carries the advice)
+    cal.cfg = dataclasses.replace(cfg, ours_min_edge_inliers=0.99, ours_coarse_candidates=1,
+                                  sparse_ring_spacing_deg=0.3)
+    with pytest.raises(CalibError, match="LiDAR edges do not meet the image edges.*1 accepted before, kept\\). "
+                                         "This LiDAR's 64 rings are 0.5 deg apart.*board_calib_node"):
         cal.fit()
     diag = cal.last_diagnostics
     assert diag.T_pre_edge is not None and diag.coarse_candidates == []
@@ -343,3 +348,34 @@ def test_edge_gate_share_follows_the_lidar_column_step():
     assert edge_inliers_needed(cfg, float("nan")) == 0.5
     wide = dataclasses.replace(cfg, ours_edge_inliers_step_px=10.0)
     assert edge_inliers_needed(wide, 7.0) == 0.5
+
+
+def test_a_refusal_points_a_sparse_lidar_to_the_board_method():
+    """With a 16-beam LiDAR (rings 2 deg apart) the target-less gates rarely pass; a refusal says so and
+    names the board method. Not for a 64-beam LiDAR, and not before a sweep has been measured."""
+    from lidar_cam_calib.sim.lidar import PRESETS
+    from lidar_cam_calib.targetless.edges import ring_spacing_deg
+    rng = np.random.default_rng(2)
+    cal = TargetlessCalibrator()
+    assert cal.sparse_lidar_advice() == ""
+    for name, sparse in (("vlp16", True), ("hdl64", False), ("os1_64", False), ("vlp32", False)):
+        d, _, _, _ = PRESETS[name].ray_directions()
+        cal.lidar_rings = ring_spacing_deg(d * rng.uniform(3.0, 30.0, d.shape[0])[:, None])
+        advice = cal.sparse_lidar_advice()
+        assert bool(advice) == sparse, name
+    assert "16 rings are 2.0 deg apart" in advice or not sparse
+    cal.lidar_rings = ring_spacing_deg(PRESETS["vlp16"].ray_directions()[0] * 10.0)
+    assert "16 rings are 2.0 deg apart" in cal.sparse_lidar_advice()
+    assert "board_calib_node" in cal.sparse_lidar_advice()
+    cal.reset()
+    assert cal.lidar_rings is None and cal.sparse_lidar_advice() == ""
+
+
+def test_sweep_keeps_the_ring_field_of_its_valid_points():
+    """The driver's ring field follows the points that are kept (NaN and near-origin returns dropped); a
+    ring field of the wrong length is ignored, not misapplied."""
+    pts = np.array([[5.0, 0, 0], [np.nan, 0, 0], [0.1, 0, 0], [6.0, 1, 0], [7.0, 0, 1]])
+    sw = LidarSweep.from_arrays(0.0, {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2],
+                                      "ring": np.array([3, 4, 5, 6, 7], np.uint16)})
+    assert sw.points.shape == (3, 3) and sw.ring.tolist() == [3, 6, 7]
+    assert LidarSweep(0.0, pts, ring=np.arange(4)).ring is None

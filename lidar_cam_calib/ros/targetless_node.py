@@ -77,7 +77,7 @@ class TargetlessCalibNode(CalibNodeBase):
         if arrays["xyz"].shape[0] == 0:
             raise InputError("PointCloud2 has no valid point (empty, or every point NaN)")
         sweep = LidarSweep(t, arrays["xyz"], arrays.get("time_s"), arrays.get("intensity"),
-                           msg.header.frame_id or "lidar")
+                           msg.header.frame_id or "lidar", arrays.get("ring"))
         self._last_sweep = sweep
         self.submit_frame(sweep, t, auto=True, wait=False, max_queued=4)
 

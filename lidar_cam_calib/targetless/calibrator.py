@@ -73,7 +73,8 @@ from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
-from .edges import EdgeConfig, EdgeView, azimuth_step_rad, refine_pose, refine_translation, yaw_about_edges
+from .edges import (EdgeConfig, EdgeView, azimuth_step_rad, refine_pose, refine_translation, ring_spacing_deg,
+                    yaw_about_edges)
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, point_motion,
                       voxel_down)
 from .frame import CameraFrame, LidarSweep
@@ -270,6 +271,11 @@ class TargetlessConfig:
     ours_max_predicted_px: float = cfg_field(
         5.0, "ours, gate: the mean projection error in x or y that the result's own covariance predicts over "
              "the LiDAR points in view (the 5 px a published result must never exceed)", range=(0.1, 100.0))
+    sparse_ring_spacing_deg: float = cfg_field(
+        1.0, "advice: when a window is refused and the LiDAR's rings are farther apart than this (median, "
+             "measured from a sweep: 2 deg on a 16-beam LiDAR, 0.33-0.53 deg on a VLP-32C, HDL-64 or OS1-64), "
+             "the refusal says that the target-less method rarely passes its gates with so sparse a LiDAR and "
+             "points to the board method", range=(0.1, 10.0))
     seed: int = cfg_field(0, "random seed of the RANSAC steps", range=(0, 2**31 - 1))
     objects: ObjectConfig = dataclasses.field(default_factory=lambda: ObjectConfig(radius_m=30.0))
     align: AlignConfig = dataclasses.field(default_factory=AlignConfig)
@@ -360,6 +366,7 @@ class TargetlessCalibrator:
         self.sweeps: list[LidarSweep] = []
         self.windows: list[dict] = []   # accepted windows: T, cov, shared, stamps, metrics
         self.n_windows_tried = 0
+        self.lidar_rings: tuple[int, float] | None = None  # (rings seen, median spacing deg), first fit
         self.last_fused = None
         self.next_window()
         self.n_seen_images = 0
@@ -418,6 +425,15 @@ class TargetlessCalibrator:
             return False
         return self.sweeps[-1].stamp_s + self.cfg.sweep_period_s >= self._lidar_time(self.images[-1])
 
+    def sparse_lidar_advice(self) -> str:
+        """What a refusal adds when the LiDAR's rings are sparse (``sparse_ring_spacing_deg``); '' else."""
+        n, sp = self.lidar_rings or (0, float("nan"))
+        if not (sp > self.cfg.sparse_ring_spacing_deg):
+            return ""
+        return (f". This LiDAR's {n} rings are {sp:.1f} deg apart: with rings this sparse the target-less "
+                "method rarely passes its gates (too few edges and too thin a cloud on the street's objects); "
+                "calibrate it on a checkerboard with board_calib_node instead")
+
     def status(self) -> dict:
         advice = ""
         if len(self.images) < self.cfg.n_frames:
@@ -438,12 +454,15 @@ class TargetlessCalibrator:
         self.last_diagnostics = diag
         self.last_window_images = list(self.images)
         self.n_windows_tried += 1
+        if self.lidar_rings is None:
+            self.lidar_rings = ring_spacing_deg(self.sweeps[-1].points, self.sweeps[-1].ring)
         try:
             T, cov, metrics = calibrate_window(self.images, self.sweeps, self.cfg, diag)
         except CalibError as e:
-            if self.windows:
-                raise CalibError(f"{e} (window {self.n_windows_tried}; {len(self.windows)} accepted before, "
-                                 "kept)") from e
+            kept = f" (window {self.n_windows_tried}; {len(self.windows)} accepted before, kept)" \
+                if self.windows else ""
+            if kept or self.sparse_lidar_advice():
+                raise CalibError(f"{e}{kept}{self.sparse_lidar_advice()}") from e
             raise
         shared = diag.shared_cov if diag.shared_cov is not None else np.zeros((6, 6))
         self.windows.append({"T": T, "cov": cov, "shared": shared, "stamps": [f.stamp_s for f in self.images],
@@ -773,7 +792,8 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                     else np.ones(sw.points.shape[0], bool)
                 static_cache[jk] = (pk, st)
             pk, st = static_cache[jk]
-            views.append(EdgeView(ims[k], sw.points, pk, sw.intensity, st, inv_T(poses[jk]) @ P_img[k]))
+            views.append(EdgeView(ims[k], sw.points, pk, sw.intensity, st, inv_T(poses[jk]) @ P_img[k],
+                                  ring=sw.ring))
     # -- camera cloud: only points whose triangulation is precise (forward motion: far points ahead have
     # tiny parallax and metre-level depth errors); sigma from the SfM's own re-projection error
     cloud_all = np.concatenate([dense, sfm.points])
@@ -786,7 +806,9 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         raise CalibError(f"only {cloud_s.shape[0]} camera-cloud points are triangulated to better than "
                          f"{max_sig * 100:.0f} cm: the camera barely moved sideways to the scene "
                          "(drive past objects, not towards them)")
-    metrics_pre = {"camera_cloud_points": int(cloud_s.shape[0]), **metrics_step}
+    n_rings, ring_deg = ring_spacing_deg(ref_sweep.points, ref_sweep.ring)
+    metrics_pre = {"camera_cloud_points": int(cloud_s.shape[0]), "lidar_rings": n_rings,
+                   "lidar_ring_spacing_deg": ring_deg, **metrics_step}
     # -- level both clouds
     Ls = _level(cloud_s, np.array([0.0, -1.0, 0.0]), rng)
     Ll = _level(lid, np.array([0.0, 0.0, 1.0]), rng)
@@ -1021,7 +1043,8 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         t5 = time.perf_counter()
         T_si = [inv_T(poses[jr]) @ P for P in P_img[:cfg.ours_edge_images]]
         edge = refine_translation(ims[:cfg.ours_edge_images], cam, ref_sweep.points, lid, ref_sweep.intensity,
-                                  static_pts, T_final, T_si, vdir, cfg.edges, full=cfg.ours_edge_full)
+                                  static_pts, T_final, T_si, vdir, cfg.edges, full=cfg.ours_edge_full,
+                                  ring=ref_sweep.ring)
         tm["edges"] = time.perf_counter() - t5
         applied = False
         if edge is not None:

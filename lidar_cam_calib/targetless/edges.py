@@ -31,6 +31,7 @@ street. This module measures that directly:
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -98,16 +99,75 @@ def _rings(raw: np.ndarray, gap_deg: float = 0.08) -> np.ndarray:
     return lab
 
 
+def _storage_rings(raw: np.ndarray, min_points: int = 1000) -> np.ndarray | None:
+    """Ring label per point when the cloud is stored ring by ring (KITTI's files, organised Ouster clouds
+    without a ring field): storage neighbours are then azimuth neighbours of one laser (a column step
+    apart, the elevation nearly the same), and the next ring begins where the azimuth has turned a full
+    circle (across the gaps where nothing returned) or jumps back. None when the cloud is not stored that
+    way (column by column, or shuffled)."""
+    n = raw.shape[0]
+    if n < min_points:
+        return None
+    az = np.arctan2(raw[:, 1], raw[:, 0])
+    el = np.arctan2(raw[:, 2], np.hypot(raw[:, 0], raw[:, 1]))
+    daz = np.angle(np.exp(1j * np.diff(az)))
+    step = float(np.median(np.abs(daz)))
+    # ring by ring: a column step (well under a degree) between storage neighbours, and the elevation
+    # nearly constant (column by column, neighbours are a ring spacing apart: 0.3 deg and more)
+    if not (1e-5 < step < math.radians(1.0)) or float(np.median(np.abs(np.diff(el)))) > math.radians(0.1):
+        return None
+    fwd = daz if np.median(daz) >= 0 else -daz
+    back = fwd < -10.0 * step                       # the azimuth jumps back: a new ring
+    travel = np.concatenate([[0.0], np.cumsum(np.where(back, 0.0, np.maximum(fwd, 0.0)))])  # at each point
+    starts = [0]
+    back_at = np.flatnonzero(back) + 1
+    while True:
+        s0 = starts[-1]
+        full = int(np.searchsorted(travel, travel[s0] + 2 * math.pi - 3.0 * step))  # a full turn later
+        nxt = back_at[back_at > s0]
+        e = min(full, int(nxt[0]) if nxt.size else n)
+        if e >= n:
+            break
+        starts.append(e)
+    lab = np.zeros(n, np.int64)
+    for k, s0 in enumerate(starts[1:], 1):
+        lab[s0:] = k
+    return lab
+
+
+def ring_sequence(raw: np.ndarray, ring: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(order, label): point indices such that consecutive entries with the same label (>= 0) are azimuth
+    neighbours on one ring, and the ring label of every point (-1: stray). From the driver's ``ring``
+    field when given (renumbered by elevation); else from the storage order when the cloud is stored ring
+    by ring (:func:`_storage_rings`: the only way on a real HDL-64, whose lasers sit up to ~0.2 m apart in
+    the head, so that one laser's elevation seen from the sensor origin spreads over degrees at short
+    range); else from the clustered elevation angles (:func:`_rings`)."""
+    raw = np.asarray(raw, float).reshape(-1, 3)
+    az = np.arctan2(raw[:, 1], raw[:, 0])
+    if ring is not None and np.asarray(ring).size == raw.shape[0]:
+        ring = np.asarray(ring).astype(np.int64).ravel()
+        u, inv, cnt = np.unique(ring, return_inverse=True, return_counts=True)
+        el = np.arctan2(raw[:, 2], np.hypot(raw[:, 0], raw[:, 1]))
+        rank = np.argsort(np.argsort(np.bincount(inv, weights=el) / cnt))  # by mean elevation, ascending
+        lab = np.where(cnt[inv] >= 50, rank[inv], -1)
+    else:
+        lab = _storage_rings(raw)
+        if lab is not None:
+            return np.arange(raw.shape[0]), lab
+        lab = _rings(raw)
+    order = np.lexsort((az, lab))
+    return order[lab[order] >= 0], lab
+
+
 def lidar_edges(raw: np.ndarray, pts: np.ndarray, intensity: np.ndarray | None, cfg: EdgeConfig,
-                keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                keep: np.ndarray | None = None, ring: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(edge points (M,3) in the frame of ``pts``, kind (M,): 0 silhouette, 1 intensity).
-    ``raw``: the points as measured (ring and azimuth order), ``pts``: the same points de-skewed;
-    ``keep``: points allowed to form an edge (static)."""
-    ring = _rings(raw)
+    ``raw``: the points as measured, ``pts``: the same points de-skewed; ``keep``: points allowed to form
+    an edge (static); ``ring``: the driver's ring field, if any (else :func:`ring_sequence` finds the
+    rings)."""
+    order, ring = ring_sequence(raw, ring)
     rng = np.linalg.norm(raw, axis=1)
     az = np.arctan2(raw[:, 1], raw[:, 0])
-    order = np.lexsort((az, ring))
-    order = order[ring[order] >= 0]
     a, b = order[:-1], order[1:]
     same = ring[a] == ring[b]
     daz = np.abs(np.angle(np.exp(1j * (az[b] - az[a]))))
@@ -205,16 +265,17 @@ def _visible(cam: CameraModel, T: np.ndarray, edges: np.ndarray, cloud: np.ndarr
 def refine_translation(images: list, cam: CameraModel, raw: np.ndarray, pts: np.ndarray,
                        intensity: np.ndarray | None, static: np.ndarray, X: np.ndarray,
                        T_sweep_imgs: list, direction: np.ndarray, cfg: EdgeConfig | None = None,
-                       full: bool = False) -> EdgeResult | None:
+                       full: bool = False, ring: np.ndarray | None = None) -> EdgeResult | None:
     """Offset of the translation of the extrinsic ``X`` (camera <- LiDAR at exposure 0) that best puts
     the LiDAR edges of one sweep on the image edges. ``pts``: de-skewed sweep points (sweep frame),
     ``raw``: as measured, ``static``: points that did not move; ``T_sweep_imgs[k]``: the LiDAR at the
     sweep stamp <- the LiDAR at exposure k (odometry), one per image; ``direction``: unit vector (camera
-    frame) of the 1-D search. ``full``: then a small 3-D refinement. None when too few edges are seen."""
+    frame) of the 1-D search. ``full``: then a small 3-D refinement; ``ring``: the driver's ring field, if
+    any. None when too few edges are seen."""
     cfg = cfg or EdgeConfig()
     d = np.asarray(direction, float)
     d = d / max(np.linalg.norm(d), 1e-12)
-    E, _kind = lidar_edges(raw, pts, intensity, cfg, keep=static)
+    E, _kind = lidar_edges(raw, pts, intensity, cfg, keep=static, ring=ring)
     if E.shape[0] < cfg.min_points:
         return None
     cloud = pts[static][::2]
@@ -304,6 +365,7 @@ class EdgeView:
     intensity: np.ndarray | None
     static: np.ndarray              # (N,) bool: points that did not move between sweeps
     T_sweep_img: np.ndarray         # LiDAR at the sweep stamp <- LiDAR at this exposure
+    ring: np.ndarray | None = None   # (N,) the driver's ring field, if any
     edges: np.ndarray | None = None  # (M,3) its LiDAR edges (de-skewed), filled by prepare_view
     dist: np.ndarray | None = None   # the image's edge-distance map, filled by prepare_view
     fields: dict = dataclasses.field(default_factory=dict, repr=False)  # filled by view_field
@@ -313,7 +375,7 @@ def prepare_view(v: EdgeView, cfg: EdgeConfig) -> EdgeView:
     """Fill the view's LiDAR edges and image edge-distance map once (both do not depend on the
     extrinsic)."""
     if v.edges is None:
-        v.edges = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static)[0]
+        v.edges = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static, ring=v.ring)[0]
     if v.dist is None:
         v.dist = image_distance(v.image, cfg)
     return v
@@ -353,6 +415,36 @@ def azimuth_step_rad(points: np.ndarray, n_queries: int = 20000) -> float:
     d = d[:, 1]
     d = d[d > 1e-7]                 # duplicated returns
     return float(np.median(d)) if d.size >= 50 else float("nan")
+
+
+def ring_spacing_deg(points: np.ndarray, ring: np.ndarray | None = None) -> tuple[int, float]:
+    """(rings seen, median elevation gap between neighbouring rings in degrees) of a spinning LiDAR's
+    sweep, from its points as measured and the driver's ``ring`` field if any (:func:`ring_sequence`). A ring that sees nothing (sky) is not counted, and the median gap is not widened by it unless
+    most rings are missing. (0, NaN) for fewer than 100 points, NaN spacing for fewer than 2 rings."""
+    p = np.asarray(points, float).reshape(-1, 3)
+    good = np.isfinite(p).all(axis=1)
+    good[good] = np.linalg.norm(p[good], axis=1) > 0.5
+    if good.sum() < 100:
+        return 0, float("nan")
+    r = None if ring is None or np.asarray(ring).size != p.shape[0] else np.asarray(ring).ravel()[good]
+    p = p[good]
+    _, lab = ring_sequence(p, r)
+    ok = lab >= 0
+    if not ok.any():
+        return 0, float("nan")
+    el = np.degrees(np.arctan2(p[ok, 2], np.hypot(p[ok, 0], p[ok, 1])))
+    lk = lab[ok]
+    # each ring's median elevation (a real head's lasers sit apart: seen from the origin, near points
+    # spread one laser's elevation over degrees; the median stays with the far ones)
+    srt = np.lexsort((el, lk))
+    lk, el = lk[srt], el[srt]
+    first = np.flatnonzero(np.concatenate([[True], lk[1:] != lk[:-1]]))
+    cnt = np.diff(np.concatenate([first, [lk.size]]))
+    big = cnt >= 0.25 * np.median(cnt)     # not the sliver of a ring that the storage order cut off
+    centres = np.sort(el[(first + cnt // 2)[big]])
+    if centres.size < 2:
+        return int(centres.size), float("nan")
+    return int(centres.size), float(np.median(np.diff(centres)))
 
 
 @dataclasses.dataclass

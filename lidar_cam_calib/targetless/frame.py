@@ -17,13 +17,16 @@ from ..core.errors import InputError
 @dataclasses.dataclass
 class LidarSweep:
     """``points`` (N,3) in the LiDAR frame at each point's measurement time
-    (not motion-compensated); ``time_s`` (N,) seconds after ``stamp_s`` when
-    the driver publishes it (else None: estimated from the azimuth)."""
+    (not motion-compensated), in the driver's order; ``time_s`` (N,) seconds
+    after ``stamp_s`` when the driver publishes it (else None: estimated from
+    the azimuth); ``ring`` (N,) the laser of each point when the driver
+    publishes it (else None: found from the order or the elevations)."""
     stamp_s: float
     points: np.ndarray
     time_s: np.ndarray | None = None
     intensity: np.ndarray | None = None
     frame_id: str = "lidar"
+    ring: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         p = np.asarray(self.points, dtype=float).reshape(-1, 3)
@@ -36,13 +39,16 @@ class LidarSweep:
         if self.intensity is not None:
             i = np.asarray(self.intensity, dtype=float).ravel()
             self.intensity = i[ok] if i.size == ok.size else None
+        if self.ring is not None:
+            r = np.asarray(self.ring).ravel()
+            self.ring = r[ok] if r.size == ok.size else None
         self.points = p[ok]
 
     @classmethod
     def from_arrays(cls, stamp_s: float, cloud: dict, frame_id: str = "lidar") -> "LidarSweep":
-        """From a dict of x, y, z[, time, intensity] arrays (io.convert / simulator)."""
+        """From a dict of x, y, z[, time, intensity, ring] arrays (io.convert / simulator)."""
         pts = np.stack([np.asarray(cloud[k], float) for k in ("x", "y", "z")], axis=1)
-        return cls(float(stamp_s), pts, cloud.get("time"), cloud.get("intensity"), frame_id)
+        return cls(float(stamp_s), pts, cloud.get("time"), cloud.get("intensity"), frame_id, cloud.get("ring"))
 
 
 @dataclasses.dataclass
