@@ -1135,7 +1135,10 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     max_h = cfg.ours_max_hausdorff_m if pe is not None else cfg.max_hausdorff_m
     if not (haus <= max_h) and solver != "oba":
         raise CalibError(f"gate failed: Hausdorff distance {haus * 100:.1f} cm between the registered clouds{how} > "
-                         f"{max_h * 100:.1f} cm; calibration rejected")
+                         f"{max_h * 100:.1f} cm: the camera's and the LiDAR's clouds do not agree in shape "
+                         "(moving traffic, or a registration that slid along the street); calibration rejected "
+                         "(drive past parked cars, poles, trunks and facades close to the road, away from "
+                         "traffic)")
     # distinct translation: the chosen candidate's edges meet clearly better than anywhere else, or (the
     # highest peak kept) its bird's-eye peak stands out
     edge_distinct = metrics.get("coarse_edge_ratio", 0.0) >= cfg.ours_min_coarse_edge_ratio
