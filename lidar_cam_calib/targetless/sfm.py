@@ -224,6 +224,14 @@ def _ba(K, poses, points, cam_idx, pt_idx, uv, fixed: int, max_nfev: int = 40):
     return out, X, np.linalg.norm(r, axis=1)
 
 
+def _sum_by(idx: np.ndarray, vals: np.ndarray, n: int) -> np.ndarray:
+    """``out[i] = sum of vals[idx == i]`` for i < n (np.add.at, by one bincount)."""
+    m = vals.shape[0]
+    k = int(np.prod(vals.shape[1:], dtype=np.int64))
+    flat = (np.asarray(idx, np.int64)[:, None] * k + np.arange(k)).ravel()
+    return np.bincount(flat, weights=vals.reshape(m, k).ravel(), minlength=n * k).reshape((n,) + vals.shape[1:])
+
+
 def _ba_schur(K, poses, points, cam_idx, pt_idx, uv, fixed: int, max_iter: int = 40, huber_px: float = 1.0):
     """Bundle adjustment by Levenberg-Marquardt on the exact normal equations, the points eliminated
     by the Schur complement (a camera system of 6 x n_cams unknowns). Forward motion makes the
@@ -266,31 +274,34 @@ def _ba_schur(K, poses, points, cam_idx, pt_idx, uv, fixed: int, max_iter: int =
         Sx[:, 1, 0], Sx[:, 2, 0], Sx[:, 2, 1] = -Xc[:, 2], Xc[:, 1], -Xc[:, 0]   # -[Xc]x
         Jc = np.concatenate([Jp @ Sx, Jp], axis=2)                 # (m,2,6)
         Jx = Jp @ R[cam_idx]                                       # (m,2,3)
-        U = np.einsum("mki,mkj,m->mij", Jc, Jc, w)
-        Wm = np.einsum("mki,mkj,m->mij", Jc, Jx, w)   # (m,6,3)
-        Vm = np.einsum("mki,mkj,m->mij", Jx, Jx, w)
-        gc = -np.einsum("mki,mk,m->mi", Jc, r, w)
-        gx = -np.einsum("mki,mk,m->mi", Jx, r, w)
-        V = np.zeros((n_pt, 3, 3))
-        np.add.at(V, pt_idx, Vm)
-        Gx = np.zeros((n_pt, 3))
-        np.add.at(Gx, pt_idx, gx)
-        Uc = np.zeros((n_cam, 6, 6))
-        np.add.at(Uc, cam_idx, U)
-        Gc = np.zeros((n_cam, 6))
-        np.add.at(Gc, cam_idx, gc)
+        # the per-observation blocks as batched matrix products (einsum over three operands does not
+        # use BLAS and took most of the SfM's time)
+        JcwT = (Jc * w[:, None, None]).transpose(0, 2, 1)          # (m,6,2)
+        JxwT = (Jx * w[:, None, None]).transpose(0, 2, 1)          # (m,3,2)
+        U = JcwT @ Jc
+        Wm = JcwT @ Jx                                             # (m,6,3)
+        Vm = JxwT @ Jx
+        gc = -(JcwT @ r[:, :, None])[:, :, 0]
+        gx = -(JxwT @ r[:, :, None])[:, :, 0]
+        V = _sum_by(pt_idx, Vm, n_pt)
+        Gx = _sum_by(pt_idx, gx, n_pt)
+        Uc = _sum_by(cam_idx, U, n_cam)
+        Gc = _sum_by(cam_idx, gc, n_cam)
         Wp = np.zeros((n_pt, n_cam, 6, 3))
         Wp[pt_idx, cam_idx] = Wm
+        Wflat = Wp.reshape(n_pt, n_cam * 6, 3)                     # (p, 6c, 3)
+        Wmat = Wflat.transpose(1, 0, 2).reshape(n_cam * 6, n_pt * 3)
         improved, rel = False, 0.0
         for _try in range(8):
             Vd = V + lam * np.einsum("nii->ni", V)[:, :, None] * np.eye(3)[None] + 1e-9 * np.eye(3)[None]
             Vinv = np.linalg.inv(Vd)
-            Y = np.einsum("pcij,pjk->pcik", Wp, Vinv)                # (p,c,6,3)
-            Sblk = -np.einsum("paij,pbkj->abik", Y, Wp)              # (c,c,6,6)
+            Y = Wflat @ Vinv                                         # (p, 6c, 3)
+            Ymat = Y.transpose(1, 0, 2).reshape(n_cam * 6, n_pt * 3)
+            Sblk = -(Ymat @ Wmat.T).reshape(n_cam, 6, n_cam, 6).transpose(0, 2, 1, 3)  # (c,c,6,6)
             Ud = Uc + lam * np.einsum("nii->ni", Uc)[:, :, None] * np.eye(6)[None] + 1e-9 * np.eye(6)[None]
             for c in range(n_cam):
                 Sblk[c, c] += Ud[c]
-            rhs = Gc - np.einsum("pcij,pj->ci", Y, Gx)
+            rhs = Gc - (Ymat @ Gx.ravel()).reshape(n_cam, 6)
             S = Sblk[free][:, free].transpose(0, 2, 1, 3).reshape(6 * nf, 6 * nf)
             try:
                 dc_f = np.linalg.solve(S, rhs[free].ravel()).reshape(nf, 6)
@@ -299,7 +310,7 @@ def _ba_schur(K, poses, points, cam_idx, pt_idx, uv, fixed: int, max_iter: int =
                 continue
             dc = np.zeros((n_cam, 6))
             dc[free] = dc_f
-            dx = np.einsum("pij,pj->pi", Vinv, Gx - np.einsum("pcji,cj->pi", Wp, dc))
+            dx = (Vinv @ (Gx - (dc.ravel() @ Wmat).reshape(n_pt, 3))[:, :, None])[:, :, 0]
             Rn = np.array([so3_exp(dc[c, :3]) @ R[c] for c in range(n_cam)])
             tn = np.array([so3_exp(dc[c, :3]) @ t[c] + dc[c, 3:] for c in range(n_cam)])
             Xn = X + dx
