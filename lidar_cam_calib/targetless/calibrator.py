@@ -454,7 +454,7 @@ class TargetlessCalibrator:
         self.last_diagnostics = diag
         self.last_window_images = list(self.images)
         self.n_windows_tried += 1
-        if self.lidar_rings is None:
+        if self.lidar_rings is None or not np.isfinite(self.lidar_rings[1]):
             self.lidar_rings = ring_spacing_deg(self.sweeps[-1].points, self.sweeps[-1].ring)
         try:
             T, cov, metrics = calibrate_window(self.images, self.sweeps, self.cfg, diag)

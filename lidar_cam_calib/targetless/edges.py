@@ -139,14 +139,15 @@ def ring_sequence(raw: np.ndarray, ring: np.ndarray | None = None) -> tuple[np.n
     """(order, label): point indices such that consecutive entries with the same label (>= 0) are azimuth
     neighbours on one ring, and the ring label of every point (-1: stray). From the driver's ``ring``
     field when given (renumbered by elevation); else from the storage order when the cloud is stored ring
-    by ring (:func:`_storage_rings`: the only way on a real HDL-64, whose lasers sit up to ~0.2 m apart in
-    the head, so that one laser's elevation seen from the sensor origin spreads over degrees at short
-    range); else from the clustered elevation angles (:func:`_rings`)."""
+    by ring (:func:`_storage_rings`: the only way on a real HDL-64 without a ring field, whose lasers do not
+    sit at the sensor origin, so that one laser's elevation seen from the origin spreads over degrees at
+    short range: 3.5-4 deg interquartile on KITTI); else from the clustered elevation angles
+    (:func:`_rings`, exact on simulated heads)."""
     raw = np.asarray(raw, float).reshape(-1, 3)
     az = np.arctan2(raw[:, 1], raw[:, 0])
     if ring is not None and np.asarray(ring).size == raw.shape[0]:
         ring = np.asarray(ring).astype(np.int64).ravel()
-        u, inv, cnt = np.unique(ring, return_inverse=True, return_counts=True)
+        _, inv, cnt = np.unique(ring, return_inverse=True, return_counts=True)
         el = np.arctan2(raw[:, 2], np.hypot(raw[:, 0], raw[:, 1]))
         rank = np.argsort(np.argsort(np.bincount(inv, weights=el) / cnt))  # by mean elevation, ascending
         lab = np.where(cnt[inv] >= 50, rank[inv], -1)
@@ -419,8 +420,9 @@ def azimuth_step_rad(points: np.ndarray, n_queries: int = 20000) -> float:
 
 def ring_spacing_deg(points: np.ndarray, ring: np.ndarray | None = None) -> tuple[int, float]:
     """(rings seen, median elevation gap between neighbouring rings in degrees) of a spinning LiDAR's
-    sweep, from its points as measured and the driver's ``ring`` field if any (:func:`ring_sequence`). A ring that sees nothing (sky) is not counted, and the median gap is not widened by it unless
-    most rings are missing. (0, NaN) for fewer than 100 points, NaN spacing for fewer than 2 rings."""
+    sweep, from its points as measured and the driver's ``ring`` field if any (:func:`ring_sequence`). A
+    ring that sees nothing (sky) is not counted, and the median gap is not widened by it unless most rings
+    are missing. (0, NaN) for fewer than 100 points, NaN spacing for fewer than 2 rings."""
     p = np.asarray(points, float).reshape(-1, 3)
     good = np.isfinite(p).all(axis=1)
     good[good] = np.linalg.norm(p[good], axis=1) > 0.5
