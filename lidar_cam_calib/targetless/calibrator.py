@@ -461,8 +461,9 @@ class TargetlessCalibrator:
         except CalibError as e:
             kept = f" (window {self.n_windows_tried}; {len(self.windows)} accepted before, kept)" \
                 if self.windows else ""
-            if kept or self.sparse_lidar_advice():
-                raise CalibError(f"{e}{kept}{self.sparse_lidar_advice()}") from e
+            extra = kept + self.sparse_lidar_advice()
+            if extra:
+                raise CalibError(f"{e}{extra}") from e
             raise
         shared = diag.shared_cov if diag.shared_cov is not None else np.zeros((6, 6))
         self.windows.append({"T": T, "cov": cov, "shared": shared, "stamps": [f.stamp_s for f in self.images],
