@@ -9,7 +9,7 @@ from conftest import SHARED_DATA
 from lidar_cam_calib.core.errors import InputError
 from lidar_cam_calib.io import convert
 from lidar_cam_calib.io.bag import BagError, bag_topics, read_bag
-from lidar_cam_calib.io.kitti import kitti_calibration, kitti_to_bag
+from lidar_cam_calib.io.kitti import kitti_calibration, kitti_point_time, kitti_to_bag
 from lidar_cam_calib.io.msgtypes import RosbagsFactory
 
 KITTI = os.path.join(SHARED_DATA, "kitti_2011_09_26_seq_dev")
@@ -55,6 +55,12 @@ def test_convert_three_frames_and_project(tmp_path):
     arr = convert.pointcloud2_to_arrays(clouds[0])
     assert arr["xyz"].shape[0] == raw.shape[0]
     assert np.allclose(arr["xyz"], raw[:, :3]) and np.allclose(arr["intensity"], raw[:, 3])
+    # each point's time about the forward-facing stamp: half a turn (0.05 s) either side
+    t = arr["time_s"]
+    az = np.degrees(np.arctan2(raw[:, 1], raw[:, 0]))
+    assert t.min() >= -0.0501 and t.max() <= 0.0501
+    assert np.all(np.abs(t[np.abs(az) < 2]) < 0.0006)
+    assert np.all(t[(az > 170) & (az < 178)] < -0.044) and np.all(t[(az < -170) & (az > -178)] > 0.044)
     # Points in front of the car project inside the image with positive depth ...
     pc = arr["xyz"] @ T[:3, :3].T + T[:3, 3]
     uv, ok = cam.project(pc)
@@ -77,6 +83,15 @@ def test_convert_three_frames_and_project(tmp_path):
     with pytest.raises(BagError):
         kitti_to_bag(KITTI, tmp_path, max_frames=1)
     kitti_to_bag(KITTI, tmp_path, max_frames=1, overwrite=True)
+
+
+def test_kitti_point_time_runs_clockwise_about_the_forward_stamp():
+    """The HDL-64E faces forward at the stamp and spins clockwise seen from above: the left side is
+    measured before the stamp, the right side after, a quarter turn (0.025 s) apart from straight ahead."""
+    az = np.radians([0.0, 90.0, -90.0, 179.9, -179.9, 45.0])
+    t = kitti_point_time(10 * np.cos(az), 10 * np.sin(az))
+    assert t.dtype == np.float32
+    assert np.allclose(t, [0.0, -0.025, 0.025, -0.05, 0.05, -0.0125], atol=1e-4)
 
 
 def test_not_a_kitti_folder(tmp_path):

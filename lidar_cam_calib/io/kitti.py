@@ -12,7 +12,8 @@ them one level above the drive folder) and writes ``<out_dir>/<name>/`` (rosbag2
 directory, zstd chunks) with ``truth.yaml`` inside it:
 
 * ``/lidar/points``        sensor_msgs/msg/PointCloud2, frame ``velodyne``, fields x y z intensity
-                           (reflectance 0..1 as float32); no per-point time: the files have none,
+                           (reflectance 0..1 as float32) time (float32 s relative to the stamp, from
+                           each point's azimuth: :func:`kitti_point_time`),
 * ``/camera/image_raw``    sensor_msgs/msg/Image bgr8, frame ``camera_optical_frame``,
 * ``/camera/camera_info``  sensor_msgs/msg/CameraInfo: K = P_rect_02[:, :3], no distortion (the
                            images are rectified), R = I, P = P_rect_02.
@@ -46,6 +47,22 @@ KITTI_RATE_HZ = 10.0
 # 2011-09-26 00:00 UTC, the recording day of the KITTI raw drives named 2011_09_26 (the exact time
 # of day is not in the source; only differences between stamps matter).
 DEFAULT_START_STAMP_S = 1316995200.0
+SWEEP_PERIOD_S = 1.0 / KITTI_RATE_HZ
+
+
+def kitti_point_time(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Per-point time (float32 s) relative to the sweep's stamp, from each point's azimuth.
+
+    KITTI's files carry no per-point time, and their stamp is not the sweep's start: the HDL-64E
+    triggers the cameras when it faces forward, which is the moment ``velodyne_points/timestamps.txt``
+    records, and a sweep begins and ends facing backward. The head spins clockwise seen from above
+    (the azimuth ``atan2(y, x)`` falls with time), so a point at azimuth ``a`` deg was measured
+    ``((180 - a) mod 360) / 360 * 0.1 - 0.05`` s from the stamp: -0.05 s at the rear on the left,
+    0 straight ahead, +0.05 s at the rear on the right. Without it a motion de-skew that takes the
+    stamp for the sweep's start puts the sweep half a turn (at 1.3 m/s, 6.5 cm) from where the camera
+    saw it."""
+    az = np.degrees(np.arctan2(np.asarray(y, float), np.asarray(x, float)))
+    return (np.mod(180.0 - az, 360.0) / 360.0 * SWEEP_PERIOD_S - 0.5 * SWEEP_PERIOD_S).astype(np.float32)
 
 
 def read_kitti_calib(path: Path) -> dict:
@@ -143,7 +160,8 @@ def _frames(kitti_dir: Path) -> list[tuple[str, Path, Path]]:
 def kitti_drive(kitti_dir) -> tuple:
     """ROS-free access to a drive: ``(camera, T_camera_lidar, frames)`` with ``frames`` a list of
     ``(stamp_s, load)`` where ``load()`` returns ``(cloud, image)``: the sweep as a dict of arrays
-    (x, y, z, intensity) and the BGR image. Stamps are the frame index / 10 Hz (the files carry none)."""
+    (x, y, z, intensity, time: :func:`kitti_point_time`) and the BGR image. Stamps are the frame index /
+    10 Hz (the files carry none)."""
     from lidar_cam_calib.core.camera import CameraModel
     kitti_dir = Path(kitti_dir)
     if not kitti_dir.is_dir():
@@ -161,7 +179,8 @@ def kitti_drive(kitti_dir) -> tuple:
             img = cv2.imread(str(img_p), cv2.IMREAD_COLOR)
             if img is None:
                 raise InputError(f"cannot decode image {img_p}")
-            return {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": pts[:, 3]}, img
+            return {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": pts[:, 3],
+                    "time": kitti_point_time(pts[:, 0], pts[:, 1])}, img
         return load
     out = [(k / KITTI_RATE_HZ, loader(img_p, bin_p)) for k, (_, img_p, bin_p) in enumerate(frames)]
     _, img0 = out[0][1]()
@@ -237,7 +256,8 @@ def kitti_to_bag(kitti_dir, out_dir, overwrite: bool = False, max_frames: int | 
                 clouds[k] = int(pts.shape[0])
                 hdr_l = fac.make_header(t, LIDAR_FRAME)
                 out = [(TOPIC_POINTS, "sensor_msgs/msg/PointCloud2",
-                        convert.arrays_to_pointcloud2(pts[:, :3], fac, hdr_l, intensity=pts[:, 3]))]
+                        convert.arrays_to_pointcloud2(pts[:, :3], fac, hdr_l, intensity=pts[:, 3],
+                                                      time_s=kitti_point_time(pts[:, 0], pts[:, 1])))]
             else:
                 img = cv2.imread(str(img_p), cv2.IMREAD_COLOR)
                 if img is None:
@@ -281,7 +301,9 @@ def kitti_to_bag(kitti_dir, out_dir, overwrite: bool = False, max_frames: int | 
         "points_per_sweep": {"min": min(clouds.values(), default=0), "max": max(clouds.values(), default=0)},
         "time_offset_s": 0.0,
         "notes": "KITTI triggers the cameras when the LiDAR faces forward (time offset 0 by design); "
-                 "sweeps are not motion-compensated and carry no per-point time",
+                 "sweeps are not motion-compensated; the files carry no per-point time, so the bag's "
+                 "'time' field is each point's azimuth turned into time about the forward-facing stamp "
+                 "(clockwise spin, 0.1 s per turn)",
     }
     tmp = truth_path.with_suffix(".yaml.tmp")
     with open(tmp, "w", encoding="utf-8") as fh:
