@@ -134,6 +134,10 @@ class TargetlessConfig:
     sweep_start_azimuth_deg: float = cfg_field(180.0, "azimuth where a sweep starts (no per-point time)",
                                                range=(-360.0, 360.0))
     sweep_period_s: float = cfg_field(0.1, "sweep period when no per-point time is published", range=(0.01, 1.0))
+    sweep_stamp_fraction: float = cfg_field(0.0, "share of the sweep measured before its stamp when no per-point "
+                                                 "time is published: 0 stamped at its start, 0.5 halfway (KITTI: "
+                                                 "the head faces forward at the stamp), 1 at its end",
+                                            range=(0.0, 1.0))
     deskew: bool = cfg_field(True, "de-skew the reference sweep with the odometry velocity")
     fuse_windows: int = cfg_field(10, "the published result fuses the most recent accepted windows of the "
                                       "collection, weighted by their covariances (1: each window alone)",
@@ -325,7 +329,8 @@ def deskew_sweep(sweep: LidarSweep, T_prev_cur: np.ndarray, cfg: TargetlessConfi
         t = sweep.time_s
     else:
         az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
-        t = np.mod(cfg.sweep_spin * (az - cfg.sweep_start_azimuth_deg), 360.0) / 360.0 * cfg.sweep_period_s
+        t = (np.mod(cfg.sweep_spin * (az - cfg.sweep_start_azimuth_deg), 360.0) / 360.0
+             - cfg.sweep_stamp_fraction) * cfg.sweep_period_s
     xi_r = so3_log(T_prev_cur[:3, :3]) / cfg.sweep_period_s
     xi_t = T_prev_cur[:3, 3] / cfg.sweep_period_s
     out = np.empty_like(p)
