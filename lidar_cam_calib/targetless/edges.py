@@ -368,6 +368,7 @@ class EdgeView:
     T_sweep_img: np.ndarray         # LiDAR at the sweep stamp <- LiDAR at this exposure
     ring: np.ndarray | None = None   # (N,) the driver's ring field, if any
     edges: np.ndarray | None = None  # (M,3) its LiDAR edges (de-skewed), filled by prepare_view
+    kinds: np.ndarray | None = None  # (M,) 0 silhouette, 1 intensity (paint), filled by prepare_view
     dist: np.ndarray | None = None   # the image's edge-distance map, filled by prepare_view
     fields: dict = dataclasses.field(default_factory=dict, repr=False)  # filled by view_field
 
@@ -376,10 +377,49 @@ def prepare_view(v: EdgeView, cfg: EdgeConfig) -> EdgeView:
     """Fill the view's LiDAR edges and image edge-distance map once (both do not depend on the
     extrinsic)."""
     if v.edges is None:
-        v.edges = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static, ring=v.ring)[0]
+        v.edges, v.kinds = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static, ring=v.ring)
     if v.dist is None:
         v.dist = image_distance(v.image, cfg)
     return v
+
+
+def edge_kind_inliers(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig,
+                      tol_px: float = 1.5) -> dict:
+    """At the extrinsic ``X``: the share of the visible silhouette and paint (intensity) edge points within
+    ``tol_px`` of an image edge (``silhouette``, ``paint``, with their counts ``n_silhouette``,
+    ``n_paint``), and ``chance``: the share of the images' pixels that close to an edge, which points
+    thrown anywhere would reach. Edges that do not meet the image more often than chance carry no
+    information about the extrinsic, only pull on it."""
+    hit = {0: [0, 0], 1: [0, 0]}
+    near = []
+    for v in views:
+        prepare_view(v, cfg)
+        near.append(float(np.mean(v.dist <= tol_px)))
+        if v.edges.shape[0] == 0:
+            continue
+        Tk = X @ inv_T(v.T_sweep_img)
+        vis = _visible(cam, Tk, v.edges, v.pts[v.static][::2])
+        if not vis.any():
+            continue
+        uv, _ = cam.project(transform_points(Tk, v.edges[vis]))
+        d = _sample(v.dist, uv)
+        kinds = v.kinds[vis] if v.kinds is not None else np.zeros(int(vis.sum()), int)
+        for k in (0, 1):
+            m = kinds == k
+            hit[k][0] += int(np.sum(d[m] <= tol_px))
+            hit[k][1] += int(m.sum())
+    share = {k: hit[k][0] / hit[k][1] if hit[k][1] else float("nan") for k in hit}
+    return {"silhouette": share[0], "paint": share[1], "n_silhouette": hit[0][1], "n_paint": hit[1][1],
+            "chance": float(np.mean(near)) if near else float("nan")}
+
+
+def without_paint(views: list) -> list:
+    """The views with their silhouettes only (prepared views; the image fields are shared)."""
+    out = []
+    for v in views:
+        k = v.kinds if v.kinds is not None else np.zeros(v.edges.shape[0], int)
+        out.append(dataclasses.replace(v, edges=v.edges[k == 0], kinds=k[k == 0]))
+    return out
 
 
 def yaw_about_edges(views: list, X: np.ndarray, up: np.ndarray, deg: float) -> np.ndarray:
@@ -696,5 +736,5 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
                           n_views=len(V), dispersion=scale / max(naive, 1e-12))
 
 
-__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "azimuth_step_rad", "image_distance",
-           "lidar_edges", "prepare_view", "proj_jacobian", "refine_pose", "refine_translation", "yaw_about_edges"]
+__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "azimuth_step_rad", "edge_kind_inliers",
+           "image_distance", "lidar_edges", "without_paint", "prepare_view", "proj_jacobian", "refine_pose", "refine_translation", "yaw_about_edges"]
