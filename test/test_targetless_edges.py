@@ -4,7 +4,8 @@ import numpy as np
 
 from lidar_cam_calib.core.camera import CameraModel
 from lidar_cam_calib.core.geometry import R_BODY_OPTICAL, make_T, pose_errors, so3_exp
-from lidar_cam_calib.targetless.edges import EdgeConfig, EdgeView, lidar_edges, refine_pose, refine_translation
+from lidar_cam_calib.targetless.edges import (EdgeConfig, EdgeView, edge_kind_inliers, lidar_edges, refine_pose,
+                                             refine_translation, without_paint)
 
 # boards x = const (LiDAR frame: x forward, y left, z up): (x, y0, y1, z0, z1, brightness)
 BOARDS = [(6.0, 2.5, 3.0, -1.5, 2.0, 0.9), (9.0, -4.0, -3.4, -1.5, 2.5, 0.8), (12.0, 3.5, 5.0, -1.0, 1.0, 0.95),
@@ -120,6 +121,38 @@ def test_refine_pose_recovers_yaw_and_lateral_offset_and_says_what_it_cannot_see
     sd_lateral = np.sqrt(lateral @ r.cov[3:, 3:] @ lateral)
     sd_up = np.sqrt(up @ r.cov[3:, 3:] @ up)
     assert sd_up > 1.5 * sd_lateral, (sd_up, sd_lateral)
+
+
+def test_paint_edges_unlike_the_image_meet_it_at_chance_and_can_be_left_out():
+    """An intensity pattern the camera does not see (a real LiDAR's reflectance steps) makes paint edges
+    that meet the image edges no more often than chance, while the silhouettes meet them; without the
+    paint the silhouettes alone recover the extrinsic."""
+    cfg = EdgeConfig(min_points=50, max_range_m=40.0)  # the wall is 30 m away
+    views = []
+    for a in (0.0, 1.0, 2.0):
+        cam, img, pts, X = _scene(ahead_m=a)
+        az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
+        unseen = 0.2 + 0.6 * (np.floor(az / 1.3) % 2)   # 1.3 deg stripes of reflectance, not in the image
+        views.append(EdgeView(img, pts, pts, unseen, np.ones(pts.shape[0], bool), np.eye(4)))
+    ki = edge_kind_inliers(views, cam, X, cfg)
+    assert 0.0 < ki["chance"] < 0.2, ki
+    assert ki["n_paint"] > 1000 and ki["n_silhouette"] > 300, ki
+    assert ki["silhouette"] > 0.8, ki
+    assert abs(ki["paint"] - ki["chance"]) < 0.1, ki
+    # a fit from 5 cm sideways: the paint pulls it away; without it, back to the truth
+    sil = without_paint(views, cfg)
+    assert all(np.all(v.kinds == 0) and v.edges.shape[0] > 0 for v in sil)
+    assert sum(v.edges.shape[0] for v in sil) < sum(v.edges.shape[0] for v in views)
+    assert all(v.image is w.image for v, w in zip(sil, views))
+    assert edge_kind_inliers(sil, cam, X, cfg)["n_paint"] == 0
+    up = X[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    lateral = X[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    Xe = X.copy()
+    Xe[:3, 3] += 0.05 * lateral
+    pulled = refine_pose(views, cam, Xe, cfg, up=up, tilt_prior_deg=0.1)
+    assert abs((pulled.T[:3, 3] - X[:3, 3]) @ lateral) > 0.1    # the paint drags the fit away
+    r = refine_pose(sil, cam, Xe, cfg, up=up, tilt_prior_deg=0.1)
+    assert r is not None and abs((r.T[:3, 3] - X[:3, 3]) @ lateral) < 0.015 and r.inliers > 0.85
 
 
 def test_refine_pose_stays_at_the_truth_and_needs_edges():

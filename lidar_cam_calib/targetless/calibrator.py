@@ -1014,7 +1014,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             drop = ki["n_paint"] > 0 and ki["n_silhouette"] >= cfg.edges.min_points and not (ki["paint"] >= need)
             metrics["edge_paint_dropped"] = int(drop)
             if drop:
-                views = without_paint(views)
+                views = without_paint(views, cfg.edges)
                 pe = _edge_fit(views, cam, T_final, axes_centre, cfg, T_final)
                 metrics.pop("edge_from_coarse_fit", None)
                 if coarse_fit is not None:

@@ -413,10 +413,11 @@ def edge_kind_inliers(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeCon
             "chance": float(np.mean(near)) if near else float("nan")}
 
 
-def without_paint(views: list) -> list:
-    """The views with their silhouettes only (prepared views; the image fields are shared)."""
+def without_paint(views: list, cfg: EdgeConfig) -> list:
+    """The views with their silhouettes only (the image and its distance fields are shared)."""
     out = []
     for v in views:
+        prepare_view(v, cfg)
         k = v.kinds if v.kinds is not None else np.zeros(v.edges.shape[0], int)
         out.append(dataclasses.replace(v, edges=v.edges[k == 0], kinds=k[k == 0]))
     return out
