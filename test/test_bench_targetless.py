@@ -33,3 +33,24 @@ def test_numeric_keeps_numbers_only():
     out = _numeric(m)
     assert out == {"edge_inliers": 0.61, "edge_views": 8.0, "hausdorff_m": 0.02}
     assert all(type(v) is float for v in out.values()) and _numeric(None) == {}
+
+
+def test_perturbed_edge_starts_report_the_edge_stage_basin():
+    """The learned methods' protocol applied to the edge refinement alone, on the synthetic board scene:
+    from the truth and from small perturbations it stays or comes back; the record says how far each
+    start was and where it ended."""
+    from test_targetless_edges import _views
+
+    from lidar_cam_calib.bench.targetless import perturbed_edge_starts
+    cam, X, views = _views()
+    axes = (X[:3, :3] @ np.array([1.0, 0.0, 0.0]), X[:3, :3] @ np.array([0.0, 0.0, 1.0]))
+    pts = np.concatenate([v.pts for v in views])
+    out = perturbed_edge_starts(views, cam, X, axes, 3, pts, levels=((0.3, 0.03), (20.0, 1.0)))
+    f0 = out["from_official"]
+    assert f0["fit"] and f0["rotation_error_deg"] < 0.1 and f0["x_error_px"] < 0.5
+    near, far = out["levels"]
+    assert near["starts"] == 3 and len(near["runs"]) == 3
+    assert all(0.0 < r["start_rotation_deg"] <= 0.3 * math.sqrt(3) + 1e-9 for r in near["runs"])
+    assert near["converged"] == 3 and near["median_rotation_error_deg"] < 0.2
+    # 20 deg and 1 m away the local fit does not come back (the coarse search is what reaches that far)
+    assert far["converged"] < 3

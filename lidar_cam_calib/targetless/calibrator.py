@@ -305,6 +305,10 @@ class WindowDiagnostics:
     T_pre_edge: np.ndarray | None = None
     edge_pose: object = None
     coarse_candidates: list = dataclasses.field(default_factory=list)  # ours: [(T, edge fit)], BEV order
+    # ours: the edge views the fit used (silhouettes only when the paint was left out) and its (driving
+    # direction, up) in the camera frame
+    edge_views: list = dataclasses.field(default_factory=list)
+    edge_axes: tuple | None = None
     # the gate's registered overlap: LiDAR points (reference sweep, de-skewed), the levelled camera cloud, its
     # KD-tree, normals and per-point depth sigma, the levelling Ls and T_sweep_img (for distances at any T)
     registered: dict = dataclasses.field(default_factory=dict)
@@ -1022,6 +1026,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                     if pe2 is not None and (pe is None or pe2.inliers > pe.inliers):
                         pe = pe2
                         metrics["edge_from_coarse_fit"] = 1
+        diag.edge_views, diag.edge_axes = views, axes_centre
         if pe is not None and cfg.ours_edge_restart_yaw_deg > 0:
             pe, metrics["edge_restart_yaw_deg"] = _edge_restarts(views, cam, pe, Ll, link.T, cfg, T_final)
         spread = None
