@@ -738,4 +738,5 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
 
 
 __all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "azimuth_step_rad", "edge_kind_inliers",
-           "image_distance", "lidar_edges", "without_paint", "prepare_view", "proj_jacobian", "refine_pose", "refine_translation", "yaw_about_edges"]
+           "image_distance", "lidar_edges", "prepare_view", "proj_jacobian", "refine_pose", "refine_translation",
+           "without_paint", "yaw_about_edges"]
