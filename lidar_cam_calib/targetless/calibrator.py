@@ -204,13 +204,15 @@ class TargetlessConfig:
     ours_edge_height_prior_m: float = cfg_field(0.03, "ours, pose mode: 1-sigma prior of the height along the up "
                                                       "axis from the registered ground planes (vertical "
                                                       "silhouettes do not see it)", range=(0.0, 10.0))
-    ours_paint_min_lift: float = cfg_field(0.5, "ours, pose mode: after the first edge fit, the paint (LiDAR "
-                                                "intensity) edges must meet the image edges at least this far "
-                                                "from chance towards the silhouettes' share, or the fit is "
-                                                "redone on the silhouettes alone (a real LiDAR's reflectance "
-                                                "steps need not be the image's edges: KITTI's meet them no more "
-                                                "often than chance and pull the fit 1.7 deg off); 0: always "
-                                                "keep them", range=(0.0, 1.0))
+    ours_paint_min_lift: float = cfg_field(0.25, "ours, pose mode: after the first edge fit, the paint (LiDAR "
+                                                 "intensity) edges must meet the image edges at least this far "
+                                                 "from chance towards the silhouettes' share, or the fit is "
+                                                 "redone on the silhouettes alone (a real LiDAR's reflectance "
+                                                 "steps need not be the image's edges: KITTI's meet them no "
+                                                 "more often than chance, 0.10 of the way, and pull the fit "
+                                                 "1.7 deg off; simulated paint that is only misaligned, 0.4-0.5 "
+                                                 "of the way, holds the camera's height and pitch and must "
+                                                 "stay); 0: always keep them", range=(0.0, 1.0))
     ours_edge_restart_yaw_deg: float = cfg_field(0.4, "ours, pose mode: the edge fit restarts from its result "
                                                        "turned by this yaw and twice it, each way, about the "
                                                        "edges' median point (0: no restarts)",
