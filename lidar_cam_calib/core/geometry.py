@@ -169,6 +169,16 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
             float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) * 1000.0))
 
 
+def spin_time_s(x: np.ndarray, y: np.ndarray, period_s: float, spin: int = -1, start_azimuth_deg: float = 180.0,
+                stamp_fraction: float = 0.0) -> np.ndarray:
+    """When a spinning LiDAR measured each point, from its azimuth ``atan2(y, x)`` alone (s after the
+    sweep's stamp): the head turns once per ``period_s`` in the direction ``spin`` (-1 clockwise seen from
+    above: Velodyne, Ouster) from ``start_azimuth_deg``, and ``stamp_fraction`` of the turn lies before the
+    stamp (0: stamped at the start; KITTI: 0.5, stamped facing forward)."""
+    az = np.degrees(np.arctan2(y, x))
+    return (np.mod(spin * (az - start_azimuth_deg), 360.0) / 360.0 - stamp_fraction) * period_s
+
+
 # Optical frame (z forward, x right, y down) expressed in a body frame
 # (x forward, y left, z up): p_body = R_BODY_OPTICAL @ p_optical.
 R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])

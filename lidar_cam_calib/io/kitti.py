@@ -37,6 +37,7 @@ import numpy as np
 import yaml
 
 from lidar_cam_calib.core.errors import InputError
+from lidar_cam_calib.core.geometry import spin_time_s
 
 TOPIC_POINTS = "/lidar/points"
 TOPIC_IMAGE = "/camera/image_raw"
@@ -61,8 +62,8 @@ def kitti_point_time(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     0 straight ahead, +0.05 s at the rear on the right. Without it a motion de-skew that takes the
     stamp for the sweep's start puts the sweep half a turn (at 1.3 m/s, 6.5 cm) from where the camera
     saw it."""
-    az = np.degrees(np.arctan2(np.asarray(y, float), np.asarray(x, float)))
-    return (np.mod(180.0 - az, 360.0) / 360.0 * SWEEP_PERIOD_S - 0.5 * SWEEP_PERIOD_S).astype(np.float32)
+    return spin_time_s(np.asarray(x, float), np.asarray(y, float), SWEEP_PERIOD_S, spin=-1, start_azimuth_deg=180.0,
+                       stamp_fraction=0.5).astype(np.float32)
 
 
 def read_kitti_calib(path: Path) -> dict:

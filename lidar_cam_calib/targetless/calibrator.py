@@ -68,7 +68,7 @@ from scipy.spatial import cKDTree
 from ..core.calibrator import Verdict, cfg_field
 from ..core.errors import CalibError, NotReadyError
 from ..core.fusion import fuse_estimates
-from ..core.geometry import inv_T, make_T, skew, so3_exp, so3_log, transform_points
+from ..core.geometry import inv_T, make_T, skew, so3_exp, so3_log, spin_time_s, transform_points
 from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
@@ -341,9 +341,8 @@ def deskew_sweep(sweep: LidarSweep, T_prev_cur: np.ndarray, cfg: TargetlessConfi
     if sweep.time_s is not None:
         t = sweep.time_s
     else:
-        az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
-        t = (np.mod(cfg.sweep_spin * (az - cfg.sweep_start_azimuth_deg), 360.0) / 360.0
-             - cfg.sweep_stamp_fraction) * cfg.sweep_period_s
+        t = spin_time_s(p[:, 0], p[:, 1], cfg.sweep_period_s, cfg.sweep_spin, cfg.sweep_start_azimuth_deg,
+                        cfg.sweep_stamp_fraction)
     xi_r = so3_log(T_prev_cur[:3, :3]) / cfg.sweep_period_s
     xi_t = T_prev_cur[:3, 3] / cfg.sweep_period_s
     out = np.empty_like(p)
@@ -1003,14 +1002,21 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         t5 = time.perf_counter()
         # the tilt and height priors (ground planes) stay about the clouds' estimate for every start
         axes_centre = _drive_axes(T_final, Ll, link.T)
-        pe = _edge_fit(views, cam, T_final, axes_centre, cfg, T_final)
-        if coarse_fit is not None:
-            # the edges chose the coarse translation: their own fit from it is a second start (the clouds'
-            # ICP may have slid away from it along the street)
-            pe2 = _edge_fit(views, cam, coarse_fit.T, _drive_axes(coarse_fit.T, Ll, link.T), cfg, T_final)
-            if pe2 is not None and (pe is None or pe2.inliers > pe.inliers):
-                pe = pe2
-                metrics["edge_from_coarse_fit"] = 1
+
+        def first_fit(views_):
+            """The edge fit from the clouds' estimate; when the edges chose the coarse translation, their
+            own fit from it is a second start (the clouds' ICP may have slid away from it along the
+            street)."""
+            metrics.pop("edge_from_coarse_fit", None)
+            f = _edge_fit(views_, cam, T_final, axes_centre, cfg, T_final)
+            if coarse_fit is not None:
+                f2 = _edge_fit(views_, cam, coarse_fit.T, _drive_axes(coarse_fit.T, Ll, link.T), cfg, T_final)
+                if f2 is not None and (f is None or f2.inliers > f.inliers):
+                    f = f2
+                    metrics["edge_from_coarse_fit"] = 1
+            return f
+
+        pe = first_fit(views)
         if pe is not None and cfg.ours_paint_min_lift > 0:
             # paint edges that meet the image no better than chance only pull the fit: redo it without them
             ki = edge_kind_inliers(views, cam, pe.T, cfg.edges)
@@ -1021,13 +1027,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             metrics["edge_paint_dropped"] = int(drop)
             if drop:
                 views = without_paint(views, cfg.edges)
-                pe = _edge_fit(views, cam, T_final, axes_centre, cfg, T_final)
-                metrics.pop("edge_from_coarse_fit", None)
-                if coarse_fit is not None:
-                    pe2 = _edge_fit(views, cam, coarse_fit.T, _drive_axes(coarse_fit.T, Ll, link.T), cfg, T_final)
-                    if pe2 is not None and (pe is None or pe2.inliers > pe.inliers):
-                        pe = pe2
-                        metrics["edge_from_coarse_fit"] = 1
+                pe = first_fit(views)
         diag.edge_views, diag.edge_axes = views, axes_centre
         if pe is not None and cfg.ours_edge_restart_yaw_deg > 0:
             pe, metrics["edge_restart_yaw_deg"] = _edge_restarts(views, cam, pe, Ll, link.T, cfg, T_final)

@@ -403,7 +403,7 @@ def edge_kind_inliers(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeCon
             continue
         uv, _ = cam.project(transform_points(Tk, v.edges[vis]))
         d = _sample(v.dist, uv)
-        kinds = v.kinds[vis] if v.kinds is not None else np.zeros(int(vis.sum()), int)
+        kinds = v.kinds[vis]
         for k in (0, 1):
             m = kinds == k
             hit[k][0] += int(np.sum(d[m] <= tol_px))
@@ -418,8 +418,8 @@ def without_paint(views: list, cfg: EdgeConfig) -> list:
     out = []
     for v in views:
         prepare_view(v, cfg)
-        k = v.kinds if v.kinds is not None else np.zeros(v.edges.shape[0], int)
-        out.append(dataclasses.replace(v, edges=v.edges[k == 0], kinds=k[k == 0]))
+        sil = v.kinds == 0
+        out.append(dataclasses.replace(v, edges=v.edges[sil], kinds=v.kinds[sil]))
     return out
 
 
