@@ -32,7 +32,7 @@ import time
 import numpy as np
 
 from ..core.errors import CalibError
-from ..core.geometry import inv_T, pose_errors, so3_log, transform_points
+from ..core.geometry import inv_T, make_T, pose_errors, so3_exp, so3_log, transform_points
 from ..core.result import write_atomic
 from ..targetless.calibrator import (SOLVERS, TargetlessCalibrator, TargetlessConfig, WindowDiagnostics,
                                     calibrate_window)
@@ -341,7 +341,6 @@ def perturbed_edge_starts(views: list, cam, T_true: np.ndarray, axes: tuple, n: 
     the three rotation angles and translation components uniform within +/- (deg, m) of each level, ``n``
     starts per level, plus one from the official calibration itself. Each start's errors against
     ``T_true`` after the fit; ``converged``: within 0.5 deg and 0.1 m of it."""
-    from ..core.geometry import make_T, so3_exp
     from ..targetless.edges import refine_pose
     rng = np.random.default_rng(seed)
     d, up = axes
