@@ -254,9 +254,13 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     diag = cal.last_diagnostics
     assert diag.T_pre_edge is not None and diag.coarse_candidates == []
     assert len(cal.windows) == 1 and cal.status()["windows_tried"] == 2
-    # accepted once more: two identical estimates fuse to the same extrinsic, (C - F) / 2 + F
-    cal.cfg = cfg
+    # once more with a distinct-peak gate no street passes: refused on its own, the window is kept as
+    # provisional, and since it agrees with the accepted one the fusion of the two is published. Two identical
+    # estimates fuse to the same extrinsic, (C - F) / 2 + F
+    cal.cfg = dataclasses.replace(cfg, ours_min_coarse_edge_ratio=10.0, ours_min_bev_peak_ratio=1e9)
     res2 = cal.fit()
+    assert res2.metrics["window_provisional"] == 1 and res2.metrics["windows_fused_provisional"] == 1
+    assert res2.metrics["coarse_edge_ratio"] < 10.0
     # shared: the clock along the drive (2 ms at 9 km/h: 5 mm), not the edge floors (each window's own by
     # default, fuse_edge_floor_shared = 0)
     F = window["shared"]
@@ -266,13 +270,51 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     assert np.allclose(res2.T_child_parent, T, atol=1e-9)
     assert np.allclose(res2.covariance, (cov - F) / 2 + F, rtol=1e-6, atol=1e-12)
     assert res2.metrics["windows_fused"] == 2 and res2.observations_used == 2 * cfg.n_frames
-    assert res2.metrics["windows_tried"] == 3 and res2.metrics["windows_accepted"] == 2
-    assert any("fusion of 2 accepted windows" in n for n in res2.notes)
-    # the next window starts with no image; reset() drops the accepted windows too
+    assert res2.metrics["windows_tried"] == 3 and res2.metrics["windows_accepted"] == 1
+    assert res2.metrics["windows_provisional"] == 1
+    assert any("fusion of 2 windows (of 3 tried): 1, 3 (provisional)" in n for n in res2.notes)
+    # the next window starts with no image; reset() drops the kept windows too
     cal.next_window()
-    assert cal.status()["frames_collected"] == 0 and len(cal.windows) == 2 and cal.sweeps
+    st = cal.status()
+    assert st["frames_collected"] == 0 and st["windows_accepted"] == 1 and st["windows_provisional"] == 1
+    assert len(cal.windows) == 2 and cal.sweeps
     cal.reset()
     assert cal.windows == [] and cal.sweeps == []
+
+
+def test_provisional_windows_count_only_beside_an_accepted_one():
+    """The publishing rule (``fuse_accepted``): a provisional window (refused only because its translation
+    search had no distinct peak) counts towards the two agreeing windows when it agrees with an accepted
+    one; two provisional windows publish nothing however well they agree; one that lies 0.3 m along the
+    street from the accepted window is not fused with it; with ``fuse_provisional`` off it is ignored."""
+    from lidar_cam_calib.targetless.calibrator import fuse_accepted
+    rng = np.random.default_rng(3)
+    T0 = make_T(rz(0.3), np.array([0.1, -0.2, 0.05]))
+    cov = np.diag([np.radians(0.05) ** 2] * 3 + [0.01 ** 2] * 3)
+
+    def win(dt, provisional):
+        T = T0.copy()
+        T[:3, 3] += dt
+        return {"T": T, "cov": cov, "shared": np.zeros((6, 6)), "provisional": provisional}
+
+    def near():  # well within the 1 cm sigma
+        return rng.normal(0, 0.005, 3)
+
+    cfg = TargetlessConfig()
+    f, recent, pub = fuse_accepted([win(near(), False), win(near(), True)], cfg)
+    assert pub and f.used == [0, 1] and np.linalg.norm(f.T[:3, 3] - T0[:3, 3]) < 0.01
+    assert fuse_accepted([win(near(), True), win(near(), False)], cfg)[2]
+    assert not fuse_accepted([win(near(), True), win(near(), True)], cfg)[2]
+    assert not fuse_accepted([win(near(), False), win(np.array([0.3, 0.0, 0.0]), True)], cfg)[2]
+    # three windows, two provisional ones agreeing with each other 0.3 m away from the accepted one: the
+    # accepted one is left out as the outlier, and what is left is provisional only
+    f, _, pub = fuse_accepted([win(near(), False), win(np.array([0.3, 0, 0]) + near(), True),
+                               win(np.array([0.3, 0, 0]) + near(), True)], cfg)
+    assert not pub and f.used == [1, 2]
+    off = dataclasses.replace(cfg, fuse_provisional=False)
+    f, recent, pub = fuse_accepted([win(near(), False), win(near(), True)], off)
+    assert not pub and len(recent) == 1 and f.used == [0]
+    assert fuse_accepted([win(near(), True)], off)[:3:2] == (None, False)
 
 
 def test_prior_move_counts_tilt_and_height_in_prior_units_not_yaw_or_lateral():

@@ -216,8 +216,8 @@ def bench_windows(run, seed: int, speed: str, n_windows: int, known_offset: bool
             res = cal.fit()
         except CalibError as e:
             why = str(e)
-        if len(cal.windows) > n_before:  # the window passed its gates
-            win = cal.windows[-1]
+        win = cal.windows[-1] if len(cal.windows) > n_before else None
+        if win is not None and not win["provisional"]:  # the window passed its gates
             # T and covariance kept for re-fusing offline with other settings (fusion is post hoc)
             w.update({"accepted": True, **_errors(run.camera, win["T"], win["cov"], T_true, ref.points),
                       "T": win["T"].tolist(), "cov": win["cov"].tolist(), "shared": win["shared"].tolist()})
@@ -226,6 +226,10 @@ def bench_windows(run, seed: int, speed: str, n_windows: int, known_offset: bool
             d = cal.last_diagnostics
             if d.T_final is not None:
                 w["refused_estimate"] = _errors(run.camera, d.T_final, None, T_true, ref.points)
+            if win is not None:  # refused on its own, kept as provisional (fuse_provisional)
+                w.update({"provisional": True, "T": win["T"].tolist(), "cov": win["cov"].tolist(),
+                          "shared": win["shared"].tolist(),
+                          "provisional_estimate": _errors(run.camera, win["T"], win["cov"], T_true, ref.points)})
         # the window's own figures (edge inliers, dispersion, Hausdorff, peak ratios...), accepted or not: what
         # a gate or the covariance could be judged on offline
         w["metrics"] = _numeric(cal.last_diagnostics.metrics)
@@ -233,6 +237,7 @@ def bench_windows(run, seed: int, speed: str, n_windows: int, known_offset: bool
             fused_rec = {"accepted": True, **_errors(run.camera, res.T_child_parent, res.covariance, T_true,
                                                      ref.points),
                          "windows_fused": int(res.metrics["windows_fused"]),
+                         "windows_fused_provisional": int(res.metrics["windows_fused_provisional"]),
                          "windows_left_out": int(res.metrics["windows_left_out"]),
                          "fusion_birge": float(res.metrics["fusion_birge"])}
             w["fused"] = dict(fused_rec)
@@ -278,29 +283,35 @@ def _unpublished(windows: list, reason: str) -> dict:
     return rec
 
 
-def refuse_runs(runs: list, min_windows: int, fuse_windows: int = 10, outlier_p: float = 0.001) -> list:
+def refuse_runs(runs: list, min_windows: int, fuse_windows: int = 10, outlier_p: float = 0.001,
+                provisional: bool = True) -> list:
     """The ``ours_fused`` record of each ``bench_windows`` run recomputed from its windows' stored estimates
-    with other fusion settings (exact: the fusion only combines the windows' results). The published result
-    is the last fusion that had ``min_windows`` agreeing windows, as the node keeps it."""
+    with other fusion settings (exact: the fusion only combines the windows' results; ``provisional``:
+    ``fuse_provisional``, which needs runs that stored their provisional windows). The published result is
+    the last fusion that had ``min_windows`` agreeing windows, as the node keeps it."""
     from ..core.camera import CameraModel
     from ..targetless.calibrator import fuse_accepted
-    cfg = TargetlessConfig(fuse_min_windows=min_windows, fuse_windows=fuse_windows, fuse_outlier_p=outlier_p)
+    cfg = TargetlessConfig(fuse_min_windows=min_windows, fuse_windows=fuse_windows, fuse_outlier_p=outlier_p,
+                           fuse_provisional=provisional)
     out = []
     for r in runs:
         cam = CameraModel(**r["camera"])
         T_true, pts = np.asarray(r["T_true"]), np.asarray(r["eval_points"], float)
-        acc, pub = [], None
+        kept, pub = [], None
         for w in r["windows"]:
-            if not w.get("accepted"):
+            if not (w.get("accepted") or w.get("provisional")):
                 continue
-            acc.append(w)
-            f, _, publish = fuse_accepted(acc, cfg)
+            kept.append(w)
+            f, recent, publish = fuse_accepted(kept, cfg)
             if publish:
-                pub = f
+                pub = f, recent
+        n_acc = sum(1 for w in kept if w.get("accepted"))
         if pub is not None:
-            rec = {"accepted": True, **_errors(cam, pub.T, pub.cov, T_true, pts), "windows_fused": len(pub.used)}
+            f, recent = pub
+            rec = {"accepted": True, **_errors(cam, f.T, f.cov, T_true, pts), "windows_fused": len(f.used),
+                   "windows_fused_provisional": sum(1 for i in f.used if recent[i].get("provisional"))}
         else:
-            rec = _unpublished(r["windows"], f"{len(acc)} windows accepted, no result published")
+            rec = _unpublished(r["windows"], f"{n_acc} windows accepted, no result published")
         out.append({**r, "solvers": {**r["solvers"], "ours_fused": rec}})
     return out
 

@@ -155,6 +155,11 @@ class TargetlessConfig:
     fuse_min_windows: int = cfg_field(2, "a result is published once this many accepted windows agree (two "
                                          "independent windows within their covariances; 1: every accepted "
                                          "window at once)", range=(1, 100))
+    fuse_provisional: bool = cfg_field(
+        True, "a window that passed every gate but the distinct-peak one (its translation search found other "
+              "places along the street nearly as good) is kept as provisional: it is never published on its "
+              "own, but it counts towards fuse_min_windows where it agrees with an accepted window (the "
+              "other window's street chose the same place independently)")
     max_point_sigma_m: float = cfg_field(0.15, "camera-cloud points with a larger predicted triangulation "
                                               "error are dropped", range=(0.005, 10.0))
     ours_max_point_sigma_m: float = cfg_field(0.05, "ours: the same limit for the translation ICP (the "
@@ -356,15 +361,30 @@ def deskew_sweep(sweep: LidarSweep, T_prev_cur: np.ndarray, cfg: TargetlessConfi
     return out
 
 
+class AmbiguousWindow(CalibError):
+    """A window that passed every gate but the distinct-peak one: refused on its own, its estimate
+    (``T``, ``cov``, ``shared``, ``metrics``) kept as provisional (``fuse_provisional``)."""
+
+    def __init__(self, message: str, T: np.ndarray, cov: np.ndarray, shared: np.ndarray, metrics: dict):
+        super().__init__(message)
+        self.T, self.cov, self.shared, self.metrics = T, cov, shared, metrics
+
+
 def fuse_accepted(windows: list, cfg: TargetlessConfig) -> tuple:
-    """(fused estimate, the windows it was made from, whether it may be published) for the accepted
-    ``windows`` (dicts with ``T``, ``cov``, ``shared``): the most recent ``cfg.fuse_windows`` fused, published
-    once ``cfg.fuse_min_windows`` of them agree (the node's rule; the bench re-fuses stored windows with it)."""
-    recent = windows[-cfg.fuse_windows:]
+    """(fused estimate, the windows it was made from, whether it may be published) for the kept
+    ``windows`` (dicts with ``T``, ``cov``, ``shared``, and ``provisional`` True for a window kept by
+    ``fuse_provisional``): the most recent ``cfg.fuse_windows`` fused, published once ``cfg.fuse_min_windows``
+    of them agree and at least one of those is accepted, not provisional (the node's rule; the bench
+    re-fuses stored windows with it). Provisional windows are left out when ``cfg.fuse_provisional`` is off."""
+    kept = windows if cfg.fuse_provisional else [w for w in windows if not w.get("provisional")]
+    recent = kept[-cfg.fuse_windows:]
+    if not recent:
+        return None, recent, False
     fused = fuse_estimates([np.asarray(w["T"]) for w in recent], [np.asarray(w["cov"]) for w in recent],
                            shared=np.mean([np.asarray(w["shared"]) for w in recent], axis=0),
                            outlier_p=cfg.fuse_outlier_p)
-    return fused, recent, len(fused.used) >= cfg.fuse_min_windows and fused.agree
+    firm = any(not recent[i].get("provisional") for i in fused.used)
+    return fused, recent, len(fused.used) >= cfg.fuse_min_windows and fused.agree and firm
 
 
 class TargetlessCalibrator:
@@ -381,7 +401,7 @@ class TargetlessCalibrator:
     def reset(self) -> None:
         """A new collection: the images, the sweeps and the accepted windows are dropped."""
         self.sweeps: list[LidarSweep] = []
-        self.windows: list[dict] = []   # accepted windows: T, cov, shared, stamps, metrics
+        self.windows: list[dict] = []   # accepted and provisional windows: T, cov, shared, stamps, metrics, provisional
         self.n_windows_tried = 0
         self.lidar_rings: tuple[int, float] | None = None  # (rings seen, median spacing deg), first fit
         self.last_fused = None
@@ -459,10 +479,21 @@ class TargetlessCalibrator:
             advice = "waiting for LiDAR sweeps covering the kept images"
         return {"frames_collected": len(self.images), "frames_needed": self.cfg.n_frames,
                 "sweeps_buffered": len(self.sweeps), "images_seen": self.n_seen_images,
-                "windows_tried": self.n_windows_tried, "windows_accepted": len(self.windows),
+                "windows_tried": self.n_windows_tried,
+                "windows_accepted": sum(1 for w in self.windows if not w["provisional"]),
+                "windows_provisional": sum(1 for w in self.windows if w["provisional"]),
                 "last_reason": self.last_reason, "advice": advice, "ready": self.ready()}
 
     # -- fit ------------------------------------------------------------------
+    def _refuse(self, e: CalibError) -> None:
+        """Raise the window's refusal ``e`` with what the collection keeps and the sparse-LiDAR advice added."""
+        n_acc = sum(1 for w in self.windows if not w["provisional"])
+        kept = f" (window {self.n_windows_tried}; {n_acc} accepted before, kept)" if n_acc else ""
+        extra = kept + self.sparse_lidar_advice()
+        if extra:
+            raise CalibError(f"{e}{extra}") from e
+        raise e
+
     def fit(self) -> CalibrationResult:
         if not self.ready():
             raise NotReadyError(f"targetless: {len(self.images)}/{self.cfg.n_frames} images kept and "
@@ -473,42 +504,54 @@ class TargetlessCalibrator:
         self.n_windows_tried += 1
         if self.lidar_rings is None or not np.isfinite(self.lidar_rings[1]):
             self.lidar_rings = ring_spacing_deg(self.sweeps[-1].points, self.sweeps[-1].ring)
+        provisional = None
         try:
             T, cov, metrics = calibrate_window(self.images, self.sweeps, self.cfg, diag)
+        except AmbiguousWindow as e:
+            if not self.cfg.fuse_provisional:
+                self._refuse(e)
+            provisional = e
+            T, cov, metrics = e.T, e.cov, e.metrics
         except CalibError as e:
-            kept = f" (window {self.n_windows_tried}; {len(self.windows)} accepted before, kept)" \
-                if self.windows else ""
-            extra = kept + self.sparse_lidar_advice()
-            if extra:
-                raise CalibError(f"{e}{extra}") from e
-            raise
+            self._refuse(e)
         shared = diag.shared_cov if diag.shared_cov is not None else np.zeros((6, 6))
         self.windows.append({"T": T, "cov": cov, "shared": shared, "stamps": [f.stamp_s for f in self.images],
-                             "index": self.n_windows_tried, "metrics": metrics})
+                             "index": self.n_windows_tried, "metrics": metrics,
+                             "provisional": provisional is not None})
         fused, recent, publish = fuse_accepted(self.windows, self.cfg)
         used = [recent[i] for i in fused.used]
+        n_acc = sum(1 for w in self.windows if not w["provisional"])
         sw = np.degrees(np.sqrt(np.max(np.diag(cov)[:3]))), 1000 * np.sqrt(np.max(np.diag(cov)[3:]))
         metrics = {**metrics, "window_sigma_rotation_deg": float(sw[0]), "window_sigma_translation_mm": float(sw[1]),
-                   "windows_accepted": len(self.windows), "windows_tried": self.n_windows_tried,
-                   "windows_fused": len(used), "windows_left_out": len(fused.dropped),
+                   "windows_accepted": n_acc, "windows_provisional": len(self.windows) - n_acc,
+                   "windows_tried": self.n_windows_tried, "window_provisional": int(provisional is not None),
+                   "windows_fused": len(used), "windows_fused_provisional": sum(1 for w in used if w["provisional"]),
+                   "windows_left_out": len(fused.dropped),
                    "fusion_chi2": fused.chi2, "fusion_dof": fused.dof, "fusion_birge": fused.birge}
+        diag.metrics = metrics
         notes = ["Nagy & Benedek 2020 pipeline (SfM, objects, 4D Hough, ICP, PnP); curve refinement not "
                  "implemented"]
         if len(used) > 1:
-            notes.append(f"fusion of {len(used)} accepted windows (of {self.n_windows_tried} tried): "
-                         + ", ".join(str(w["index"]) for w in used)
+            notes.append(f"fusion of {len(used)} windows (of {self.n_windows_tried} tried): "
+                         + ", ".join(str(w["index"]) + (" (provisional)" if w["provisional"] else "") for w in used)
                          + (f"; scatter chi2 {fused.chi2:.1f} / {fused.dof} dof, covariance x {fused.birge:.2f}"
                             if fused.birge > 1 else ""))
         for i, c2 in fused.dropped:
             notes.append(f"window {recent[i]['index']} left out: it disagrees with the others (chi2 {c2:.1f}, "
                          f"6 dof, beyond the {100 * (1 - self.cfg.fuse_outlier_p):.1f} % quantile)")
         self.last_fused = fused
+        if not publish and provisional is not None:
+            raise CalibError(f"{provisional} (window {self.n_windows_tried}; kept as provisional: it counts "
+                             "once it agrees with an accepted window)" + self.sparse_lidar_advice())
         if not publish:
-            why = (f"the {len(used)} accepted windows disagree (chi2 {fused.chi2:.1f}, 6 dof, beyond the "
-                   f"{100 * (1 - self.cfg.fuse_outlier_p):.1f} % quantile): neither is trusted until a third "
-                   "decides" if not fused.agree else
-                   f"{len(used)} of {self.cfg.fuse_min_windows} agreeing windows needed before a result is "
-                   "published")
+            if not fused.agree:
+                why = (f"the {len(used)} windows disagree (chi2 {fused.chi2:.1f}, 6 dof, beyond the "
+                       f"{100 * (1 - self.cfg.fuse_outlier_p):.1f} % quantile): neither is trusted until a third "
+                       "decides")
+            elif len(used) < self.cfg.fuse_min_windows:
+                why = f"{len(used)} of {self.cfg.fuse_min_windows} agreeing windows needed before a result is published"
+            else:
+                why = "the windows that agree are all provisional (no distinct peak), this one left out"
             raise CalibError(f"window {self.n_windows_tried} accepted ({sw[0]:.2f} deg, {sw[1]:.0f} mm 1-sigma), "
                              f"but {why}; keep driving")
         img0 = self.images[0]
@@ -1181,12 +1224,29 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     edge_distinct = metrics.get("coarse_edge_ratio", 0.0) >= cfg.ours_min_coarse_edge_ratio
     bev_distinct = metrics.get("bev_peak_ratio", np.inf) >= cfg.ours_min_bev_peak_ratio and \
         metrics.get("coarse_rank", 0) == 0
+    ambiguous = ""
     if ours and not (edge_distinct or bev_distinct):
         er = f", image-edge inliers chosen / best elsewhere {metrics['coarse_edge_ratio']:.2f} < " \
              f"{cfg.ours_min_coarse_edge_ratio:.2f}" if "coarse_edge_ratio" in metrics else ""
-        raise CalibError(f"gate failed: the translation search has no distinct peak (best / best elsewhere "
-                         f"{metrics['bev_peak_ratio']:.2f} < {cfg.ours_min_bev_peak_ratio:.2f}{er}): the street "
-                         "looks the same along its axis; calibration rejected (drive past poles, trunks, signs)")
+        ambiguous = (f"gate failed: the translation search has no distinct peak (best / best elsewhere "
+                     f"{metrics['bev_peak_ratio']:.2f} < {cfg.ours_min_bev_peak_ratio:.2f}{er}): the street "
+                     "looks the same along its axis; calibration rejected (drive past poles, trunks, signs)")
+    try:
+        _later_gates(cfg, metrics, ours, pose_edge, pe, edge, min_inliers, metrics_step, pred, ha, how)
+    except CalibError:
+        if ambiguous:  # the first gate that failed is the one named
+            raise CalibError(ambiguous) from None
+        raise
+    diag.metrics = metrics
+    if ambiguous:
+        shared = diag.shared_cov if diag.shared_cov is not None else np.zeros((6, 6))
+        raise AmbiguousWindow(ambiguous, T_final, cov, shared, metrics)
+    return T_final, cov, metrics
+
+
+def _later_gates(cfg: TargetlessConfig, metrics: dict, ours: bool, pose_edge: bool, pe, edge, min_inliers: float,
+                 metrics_step: dict, pred: tuple, ha: float, how: str) -> None:
+    """The gates after the distinct-peak one (raise :class:`CalibError` with the first that fails)."""
     if ours and not (ha <= cfg.ours_max_hausdorff_above_ground_m):
         raise CalibError(f"gate failed: Hausdorff distance above the ground {ha * 100:.1f} cm{how} > "
                          f"{cfg.ours_max_hausdorff_above_ground_m * 100:.1f} cm (the poles, trunks and facades "
@@ -1225,8 +1285,6 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                          f"{cfg.ours_edge_height_prior_m * 100:.1f} cm: {metrics['edge_prior_conflict']:.1f} > "
                          f"{cfg.ours_max_prior_conflict:.1f}): the ground planes and the image edges disagree; "
                          "calibration rejected (drive a stretch where the road ahead is open and flat)")
-    diag.metrics = metrics
-    return T_final, cov, metrics
 
 
 def predicted_projection_px(cam, T: np.ndarray, cov: np.ndarray, points: np.ndarray,
