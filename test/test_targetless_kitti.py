@@ -21,10 +21,14 @@ def test_one_kitti_window_is_right_or_refused_with_its_gate(tmp_path):
     assert (tmp_path / "kitti.png").stat().st_size > 10_000
     m = r.get("metrics", {})
     if "edge_paint_inliers" in m:
-        # KITTI's reflectance steps meet the image edges about as often as chance: the fit leaves them out
-        assert abs(m["edge_paint_inliers"] - m["edge_chance"]) < 0.05 and m["edge_paint_dropped"] == 1, m
-        # the edge stage alone, started at the official calibration and near it, stays near it
         pz = out["perturbed_edge_starts"]
+        # at the official calibration the road's paint edges (windowed intensity steps on the ground plane)
+        # meet the image edges well above chance, as often as the silhouettes (each neighbour step anywhere,
+        # KITTI's texture, cars and hedges, met them at chance: 16.6 % against 15.9 %)
+        ki = pz["edge_kinds_at_official"]
+        assert ki["n_paint"] >= 100 and ki["paint"] > ki["chance"] + 0.1, ki
+        assert ki["paint"] > 0.8 * ki["silhouette"], ki
+        # the edge stage alone, started at the official calibration and near it, stays near it
         assert pz["from_official"]["rotation_error_deg"] < 0.5 and pz["from_official"]["translation_error_mm"] < 100
         assert pz["levels"][-1]["converged"] >= 1, pz["levels"][-1]
     if not r["accepted"]:

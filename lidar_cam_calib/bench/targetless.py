@@ -351,8 +351,10 @@ def perturbed_edge_starts(views: list, cam, T_true: np.ndarray, axes: tuple, n: 
     priors) started from the official calibration perturbed as the learned methods' protocol does: each of
     the three rotation angles and translation components uniform within +/- (deg, m) of each level, ``n``
     starts per level, plus one from the official calibration itself. Each start's errors against
-    ``T_true`` after the fit; ``converged``: within 0.5 deg and 0.1 m of it."""
-    from ..targetless.edges import refine_pose
+    ``T_true`` after the fit; ``converged``: within 0.5 deg and 0.1 m of it. ``edge_kinds_at_official``:
+    how often each kind of edge meets the image edges at the official calibration, and chance
+    (:func:`~lidar_cam_calib.targetless.edges.edge_kind_inliers`)."""
+    from ..targetless.edges import edge_kind_inliers, refine_pose
     rng = np.random.default_rng(seed)
     d, up = axes
     cfg = TargetlessConfig().edges
@@ -367,7 +369,8 @@ def perturbed_edge_starts(views: list, cam, T_true: np.ndarray, axes: tuple, n: 
         return {"fit": True, "rotation_error_deg": r_deg, "translation_error_mm": t_mm, "x_error_px": ex,
                 "y_error_px": ey, "edge_inliers": f.inliers}
 
-    out = {"from_official": fit(T_true), "levels": []}
+    out = {"from_official": fit(T_true), "levels": [],
+           "edge_kinds_at_official": edge_kind_inliers(views, cam, T_true, cfg)}
     for rot_deg, tr_m in levels:
         runs = []
         for _ in range(n):
@@ -512,6 +515,10 @@ def main(argv=None) -> int:
                 print(f"kitti frames {res.get('frames')}: edge refinement alone from the official calibration: "
                       + (f"{f0['rotation_error_deg']:.2f} deg {f0['translation_error_mm']:.0f} mm "
                          f"{f0['x_error_px']:.2f}/{f0['y_error_px']:.2f} px" if f0["fit"] else "no fit"), flush=True)
+                ki = pz["edge_kinds_at_official"]
+                print(f"  at the official calibration: silhouettes {ki['silhouette']:.3f} of {ki['n_silhouette']}, "
+                      f"paint {ki['paint']:.3f} of {ki['n_paint']} within 1.5 px of an image edge; chance "
+                      f"{ki['chance']:.3f}", flush=True)
                 for lv in pz["levels"]:
                     med = (f"median after {lv['median_rotation_error_deg']:.2f} deg "
                            f"{lv['median_translation_error_mm']:.0f} mm" if lv["median_rotation_error_deg"] is not None

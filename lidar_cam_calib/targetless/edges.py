@@ -49,6 +49,18 @@ class EdgeConfig:
                                         "within this fraction of the range (+5 cm)", range=(0.0, 1.0))
     intensity_jump: float = cfg_field(0.25, "paint edge: intensity step over the sweep's 95th percentile",
                                       range=(0.01, 10.0))
+    paint_ground_m: float = cfg_field(0.2, "paint edges only on the road: both returns within this of the sweep's "
+                                           "ground plane (0: anywhere). On KITTI the reflectance steps above the "
+                                           "ground (cars, hedges, facades) meet the image's edges at chance, "
+                                           "those on the road as often as the silhouettes do", range=(0.0, 10.0))
+    intensity_window: int = cfg_field(5, "paint edge: the step is measured between the mean intensities of up "
+                                         "to this many points on each side along the scan line (1: the two "
+                                         "neighbours alone, which a textured surface trips at every other point)",
+                                      range=(1, 20))
+    intensity_z: float = cfg_field(3.0, "paint edge: the step relative to the local mean intensity must also be "
+                                        "this many sigmas of the texture that the sweep's neighbouring returns "
+                                        "show (estimated per sweep, median absolute relative difference)",
+                                   range=(0.0, 100.0))
     max_range_m: float = cfg_field(20.0, "LiDAR edges farther than this are left out", range=(2.0, 200.0))
     min_range_m: float = cfg_field(1.5, "LiDAR edges nearer than this are left out", range=(0.0, 50.0))
     truncate_px: float = cfg_field(4.0, "robust score: distances to the image edges truncated here "
@@ -161,11 +173,12 @@ def ring_sequence(raw: np.ndarray, ring: np.ndarray | None = None) -> tuple[np.n
 
 
 def lidar_edges(raw: np.ndarray, pts: np.ndarray, intensity: np.ndarray | None, cfg: EdgeConfig,
-                keep: np.ndarray | None = None, ring: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                keep: np.ndarray | None = None, ring: np.ndarray | None = None,
+                ground: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(edge points (M,3) in the frame of ``pts``, kind (M,): 0 silhouette, 1 intensity).
     ``raw``: the points as measured, ``pts``: the same points de-skewed; ``keep``: points allowed to form
     an edge (static); ``ring``: the driver's ring field, if any (else :func:`ring_sequence` finds the
-    rings)."""
+    rings); ``ground``: points on the road, the only ones that form intensity edges (None: any)."""
     order, ring = ring_sequence(raw, ring)
     rng = np.linalg.norm(raw, axis=1)
     az = np.arctan2(raw[:, 1], raw[:, 0])
@@ -197,13 +210,55 @@ def lidar_edges(raw: np.ndarray, pts: np.ndarray, intensity: np.ndarray | None, 
     out = [pts[idx] + um * near[sil, None] - raw[idx]]
     kind = [np.zeros(idx.size, int)]
     if intensity is not None and intensity.size == raw.shape[0]:
-        scale = max(float(np.percentile(intensity, 95)), 1e-9)
-        di = np.abs(intensity[a] - intensity[b]) / scale
-        cont = np.abs(ra - rb) < 0.05 * near + 0.05
-        pt = adj & cont & inr & (di > cfg.intensity_jump)
+        on = adj & (np.abs(ra - rb) < 0.05 * near + 0.05)
+        if ground is not None:
+            on &= ground[a] & ground[b]
+        pt = intensity_steps(np.asarray(intensity, float)[order], on, cfg) & inr
         out.append(0.5 * (pts[a[pt]] + pts[b[pt]]))
         kind.append(np.ones(int(pt.sum()), int))
     return np.concatenate(out), np.concatenate(kind)
+
+
+def intensity_steps(inten: np.ndarray, cont: np.ndarray, cfg: EdgeConfig) -> np.ndarray:
+    """Which pairs (j, j+1) of the intensities ``inten`` (in scan order) are paint edges; ``cont`` (one per
+    pair): its two points are neighbours on one continuous surface. The step is the difference of the mean
+    intensities of up to ``intensity_window`` points each side within the same continuous run; it must exceed
+    ``intensity_jump`` times the sweep's 95th percentile, and, relative to the two means' average,
+    ``intensity_z`` sigmas of the texture (the median relative difference of neighbouring returns on
+    continuous surfaces, over 0.6745 sqrt 2: the per-return scatter a camera pixel averages away), and be a
+    local maximum along the run (one edge, one point). A window of 1 is the plain neighbour difference."""
+    n_p = inten.size - 1
+    pt = np.zeros(max(n_p, 0), bool)
+    if n_p < 1 or not cont.any():
+        return pt
+    scale = max(float(np.percentile(inten, 95)), 1e-9)
+    ia, ib = inten[:-1], inten[1:]
+    rel = np.abs(ia - ib) / np.maximum(0.5 * (ia + ib), 1e-9 * scale)
+    sig = float(np.median(rel[cont])) / (0.6745 * math.sqrt(2.0))
+    k = int(cfg.intensity_window)
+    j = np.arange(n_p)
+    # continuous runs of points: a point starts a new run where the pair before it is not continuous
+    run = np.concatenate([[0], np.cumsum(~cont)])
+    first = np.searchsorted(run, run, side="left")      # first point of each point's run
+    last = np.searchsorted(run, run, side="right") - 1   # last point of it
+    lo = np.maximum(j - k + 1, first[j])
+    hi = np.minimum(j + k, last[j + 1])
+    c = np.concatenate([[0.0], np.cumsum(inten)])
+    mL = (c[j + 1] - c[lo]) / (j + 1 - lo)
+    mR = (c[hi + 1] - c[j + 1]) / (hi - j)
+    nL, nR = j + 1 - lo, hi - j
+    D = np.abs(mR - mL)
+    ok = cont & (D > cfg.intensity_jump * scale)
+    if cfg.intensity_z > 0 and k > 1:
+        n_eff = np.minimum(nL, nR)
+        ok &= D / np.maximum(0.5 * (mL + mR), 1e-9 * scale) > cfg.intensity_z * sig * np.sqrt(2.0 / n_eff)
+    if k > 1:
+        # a local maximum along the run (the windowed step ramps up over the window towards a true step: its
+        # neighbours are smaller; two sides of a stripe a few points wide both stay)
+        Dm = np.where(cont, D, -1.0)
+        ok[1:] &= Dm[1:] > Dm[:-1]
+        ok[:-1] &= Dm[:-1] >= Dm[1:]
+    return ok
 
 
 def image_distance(image: np.ndarray, cfg: EdgeConfig) -> np.ndarray:
@@ -367,6 +422,7 @@ class EdgeView:
     static: np.ndarray              # (N,) bool: points that did not move between sweeps
     T_sweep_img: np.ndarray         # LiDAR at the sweep stamp <- LiDAR at this exposure
     ring: np.ndarray | None = None   # (N,) the driver's ring field, if any
+    ground: np.ndarray | None = None  # (N,) bool: on the road (paint edges only there); None: anywhere
     edges: np.ndarray | None = None  # (M,3) its LiDAR edges (de-skewed), filled by prepare_view
     kinds: np.ndarray | None = None  # (M,) 0 silhouette, 1 intensity (paint), filled by prepare_view
     dist: np.ndarray | None = None   # the image's edge-distance map, filled by prepare_view
@@ -377,7 +433,7 @@ def prepare_view(v: EdgeView, cfg: EdgeConfig) -> EdgeView:
     """Fill the view's LiDAR edges and image edge-distance map once (both do not depend on the
     extrinsic)."""
     if v.edges is None:
-        v.edges, v.kinds = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static, ring=v.ring)
+        v.edges, v.kinds = lidar_edges(v.raw, v.pts, v.intensity, cfg, keep=v.static, ring=v.ring, ground=v.ground)
     if v.dist is None:
         v.dist = image_distance(v.image, cfg)
     return v
