@@ -203,8 +203,8 @@ def test_paint_steps_on_a_textured_surface_from_windowed_means():
 def test_paint_edges_only_on_the_road_when_the_ground_is_given():
     """A ring LiDAR over a road with paint stripes and a wall with reflectance stripes: with the ground
     points given, the intensity edges are the road's alone; without, the wall's too. The silhouettes do
-    not depend on it. ``road_points`` finds the road within its tolerance of the ground plane."""
-    from lidar_cam_calib.targetless.calibrator import road_points
+    not depend on it. ``ground_distance`` finds the road's plane (no plane: every point infinitely far)."""
+    from lidar_cam_calib.targetless.calibrator import ground_distance
     el = np.radians(np.linspace(-25.0, 2.0, 24))
     az = np.radians(np.arange(-60.0, 60.0, 0.2))
     E, A = np.meshgrid(el, az, indexing="ij")
@@ -219,10 +219,9 @@ def test_paint_edges_only_on_the_road_when_the_ground_is_given():
     stripes = np.floor(pts[:, 1] / 0.8) % 2 == 0          # 0.8 m stripes across the scan lines
     inten = np.where(on_ground, np.where(stripes, 0.6, 0.1), np.where(stripes, 0.3, 0.7))
     cfg = EdgeConfig(max_range_m=30.0)
-    road = road_points(pts, 0.2)
-    assert road is not None and road[on_ground].all() and not road[pts[:, 2] > -1.55].any()
-    assert road_points(pts, 0.0) is None
-    assert not road_points(pts[~on_ground], 0.2).any()            # no ground plane: no road
+    road = ground_distance(pts) <= 0.2
+    assert road[on_ground].all() and not road[pts[:, 2] > -1.55].any()
+    assert np.all(np.isinf(ground_distance(pts[~on_ground])))     # no ground plane: no road
     e_all, k_all = lidar_edges(pts, pts, inten, cfg, ring=ring)
     e_road, k_road = lidar_edges(pts, pts, inten, cfg, ring=ring, ground=road)
     paint_all, paint_road = e_all[k_all == 1], e_road[k_road == 1]
