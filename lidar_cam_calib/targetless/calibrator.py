@@ -386,11 +386,12 @@ def deskew_sweep(sweep: LidarSweep, T_prev_cur: np.ndarray, cfg: TargetlessConfi
 
 class AmbiguousWindow(CalibError):
     """A window that passed every gate but the distinct-peak one: refused on its own, its estimate
-    (``T``, ``cov``, ``shared``, ``metrics``) kept as provisional (``fuse_provisional``)."""
+    (``T``, ``cov``, ``metrics``; the shared part is in the window's diagnostics) kept as provisional
+    (``fuse_provisional``)."""
 
-    def __init__(self, message: str, T: np.ndarray, cov: np.ndarray, shared: np.ndarray, metrics: dict):
+    def __init__(self, message: str, T: np.ndarray, cov: np.ndarray, metrics: dict):
         super().__init__(message)
-        self.T, self.cov, self.shared, self.metrics = T, cov, shared, metrics
+        self.T, self.cov, self.metrics = T, cov, metrics
 
 
 def fuse_accepted(windows: list, cfg: TargetlessConfig) -> tuple:
@@ -503,14 +504,18 @@ class TargetlessCalibrator:
         return {"frames_collected": len(self.images), "frames_needed": self.cfg.n_frames,
                 "sweeps_buffered": len(self.sweeps), "images_seen": self.n_seen_images,
                 "windows_tried": self.n_windows_tried,
-                "windows_accepted": sum(1 for w in self.windows if not w["provisional"]),
-                "windows_provisional": sum(1 for w in self.windows if w["provisional"]),
+                "windows_accepted": self.n_accepted(),
+                "windows_provisional": len(self.windows) - self.n_accepted(),
                 "last_reason": self.last_reason, "advice": advice, "ready": self.ready()}
+
+    def n_accepted(self) -> int:
+        """The kept windows that passed every gate (the others are provisional)."""
+        return sum(1 for w in self.windows if not w["provisional"])
 
     # -- fit ------------------------------------------------------------------
     def _refuse(self, e: CalibError) -> None:
         """Raise the window's refusal ``e`` with what the collection keeps and the sparse-LiDAR advice added."""
-        n_acc = sum(1 for w in self.windows if not w["provisional"])
+        n_acc = self.n_accepted()
         kept = f" (window {self.n_windows_tried}; {n_acc} accepted before, kept)" if n_acc else ""
         extra = kept + self.sparse_lidar_advice()
         if extra:
@@ -543,7 +548,7 @@ class TargetlessCalibrator:
                              "provisional": provisional is not None})
         fused, recent, publish = fuse_accepted(self.windows, self.cfg)
         used = [recent[i] for i in fused.used]
-        n_acc = sum(1 for w in self.windows if not w["provisional"])
+        n_acc = self.n_accepted()
         sw = np.degrees(np.sqrt(np.max(np.diag(cov)[:3]))), 1000 * np.sqrt(np.max(np.diag(cov)[3:]))
         metrics = {**metrics, "window_sigma_rotation_deg": float(sw[0]), "window_sigma_translation_mm": float(sw[1]),
                    "windows_accepted": n_acc, "windows_provisional": len(self.windows) - n_acc,
@@ -1283,8 +1288,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         raise
     diag.metrics = metrics
     if ambiguous:
-        shared = diag.shared_cov if diag.shared_cov is not None else np.zeros((6, 6))
-        raise AmbiguousWindow(ambiguous, T_final, cov, shared, metrics)
+        raise AmbiguousWindow(ambiguous, T_final, cov, metrics)
     return T_final, cov, metrics
 
 

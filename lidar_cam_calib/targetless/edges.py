@@ -243,10 +243,10 @@ def intensity_steps(inten: np.ndarray, cont: np.ndarray, cfg: EdgeConfig) -> np.
     last = np.searchsorted(run, run, side="right") - 1   # last point of it
     lo = np.maximum(j - k + 1, first[j])
     hi = np.minimum(j + k, last[j + 1])
-    c = np.concatenate([[0.0], np.cumsum(inten)])
-    mL = (c[j + 1] - c[lo]) / (j + 1 - lo)
-    mR = (c[hi + 1] - c[j + 1]) / (hi - j)
     nL, nR = j + 1 - lo, hi - j
+    c = np.concatenate([[0.0], np.cumsum(inten)])
+    mL = (c[j + 1] - c[lo]) / nL
+    mR = (c[hi + 1] - c[j + 1]) / nR
     D = np.abs(mR - mL)
     ok = cont & (D > cfg.intensity_jump * scale)
     if cfg.intensity_z > 0 and k > 1:
