@@ -76,6 +76,9 @@ class EdgeConfig:
     pose_fine_blur_px: float = cfg_field(1.0, "6-DoF refinement: blur of the fine distance field", range=(0.0, 20.0))
     pose_cauchy_px: float = cfg_field(1.5, "6-DoF refinement: Cauchy scale of the fine stage", range=(0.1, 20.0))
     min_points: int = cfg_field(150, "fewest visible LiDAR edge points (all images)", range=(10, 100000))
+    view_min_points: int = cfg_field(30, "an image enters the edge fit with at least this many visible LiDAR "
+                                         "edge points (a sparse head's 30-60 per image count; the fit needs "
+                                         "150 over all images)", range=(5, 100000))
     pose_max_points: int = cfg_field(2000, "6-DoF refinement: at most this many visible edge points per image, "
                                            "evenly spaced along the scan (a dense LiDAR's 6000 cost 3x the "
                                            "time; the covariance is scaled by the measured dispersion, so "
@@ -339,7 +342,7 @@ def refine_translation(images: list, cam: CameraModel, raw: np.ndarray, pts: np.
     for img, Tsi in zip(images, T_sweep_imgs):
         Tk = X @ inv_T(Tsi)  # camera k <- sweep
         vis = _visible(cam, Tk, E, cloud)
-        if vis.sum() < cfg.min_points // 3:
+        if vis.sum() < cfg.view_min_points:
             continue
         views.append((image_distance(img, cfg), Tk, E[vis]))
     n = sum(v[2].shape[0] for v in views)
@@ -660,11 +663,11 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     V = []
     for v in views:
         E = prepare_view(v, cfg).edges
-        if E.shape[0] < cfg.min_points // 3:
+        if E.shape[0] < cfg.view_min_points:
             continue
         Tk = X @ inv_T(v.T_sweep_img)      # camera at this exposure <- sweep
         vis = _visible(cam, Tk, E, v.pts[v.static][::2])
-        if vis.sum() < cfg.min_points // 3:
+        if vis.sum() < cfg.view_min_points:
             continue
         idx = np.flatnonzero(vis)
         if idx.size > cfg.pose_max_points:  # evenly thinned (the edges come in scan order)

@@ -100,12 +100,16 @@ class ObjectSet:
 
 
 def ground_plane(points: np.ndarray, rng: np.random.Generator, up_hint: np.ndarray,
-                 max_tilt_deg: float = 25.0, threshold_m: float = 0.08) -> tuple[np.ndarray, float]:
+                 max_tilt_deg: float = 25.0, threshold_m: float = 0.08,
+                 max_walls: int = 8) -> tuple[np.ndarray, float]:
     """Ground plane (n, d) with n pointing along ``up_hint`` (within ``max_tilt_deg``).
 
     RANSAC on the lowest part of the cloud along the hint (points below the
     median height), rejecting planes tilted more than ``max_tilt_deg`` from the
-    hint (walls). Raises :class:`CalibError` when no such plane exists."""
+    hint (walls: each is dropped and the search repeated, up to ``max_walls``
+    times; a camera looking along a street lined with tall facades has more
+    facade than road in its lower half). Raises :class:`CalibError` when no such
+    plane exists."""
     p = np.asarray(points, float)
     up = np.asarray(up_hint, float) / np.linalg.norm(up_hint)
     h = p @ up
@@ -115,7 +119,7 @@ def ground_plane(points: np.ndarray, rng: np.random.Generator, up_hint: np.ndarr
     cos_min = np.cos(np.radians(max_tilt_deg))
     best = None
     pts = low
-    for _ in range(4):
+    for _ in range(max_walls):
         try:
             n, d, inl = ransac_plane(pts, threshold_m, 300, rng, min_inliers=20)
         except FitError:
