@@ -127,6 +127,24 @@ def test_ground_plane_under_facades_that_outnumber_the_road():
         ground_plane(np.concatenate(walls), rng, up_hint=np.array([0.05, 0.0, 1.0]))
 
 
+def test_ground_normal_scatter_measures_how_well_the_road_fixes_the_tilt():
+    """The tilt prior's width per window: a flat road with 1 cm noise scatters by hundredths of a degree,
+    a road whose far half is tilted 1.5 deg sideways (a camera cloud bent by its depth errors, as KITTI's)
+    by about a degree; a road of too few points says nothing (NaN)."""
+    from lidar_cam_calib.targetless.objects import ground_normal_scatter_deg
+    rng = np.random.default_rng(13)
+    xy = np.stack([rng.uniform(-5, 5, 8000), rng.uniform(4, 40, 8000)], 1)
+    flat = np.column_stack([xy, rng.normal(0, 0.01, 8000)])
+    tilt = np.where(xy[:, 1] > 22, np.tan(np.radians(1.5)) * xy[:, 0], 0.0)
+    bent = np.column_stack([xy, tilt + rng.normal(0, 0.01, 8000)])
+    walls = np.column_stack([rng.uniform(-5, 5, 3000), rng.uniform(4, 40, 3000), rng.uniform(0.2, 8, 3000)])
+    s_flat = ground_normal_scatter_deg(np.concatenate([flat, walls]))
+    s_bent = ground_normal_scatter_deg(np.concatenate([bent, walls]))
+    assert s_flat < 0.1
+    assert 0.6 < s_bent < 1.5
+    assert np.isnan(ground_normal_scatter_deg(flat[:100]))
+
+
 def test_too_few_objects_is_refused():
     rng = np.random.default_rng(9)
     pts, _ = street(rng, n_obj=2)

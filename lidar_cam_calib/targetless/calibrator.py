@@ -78,7 +78,7 @@ from .edges import (EdgeConfig, EdgeView, azimuth_step_rad, edge_kind_inliers, r
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, point_motion,
                       voxel_down)
 from .frame import CameraFrame, LidarSweep
-from .objects import ObjectConfig, extract_objects, ground_plane, level_rotation
+from .objects import ObjectConfig, extract_objects, ground_normal_scatter_deg, ground_plane, level_rotation
 from .pnp import _ideal_project, final_pnp
 from .sfm import SfmConfig, apply_scale, densify, depth_sigma, run_sfm
 
@@ -216,8 +216,17 @@ class TargetlessConfig:
                                                       "ground planes (the edges see pitch and roll weakly: "
                                                       "LiDAR scan lines give mostly vertical silhouettes; the "
                                                       "camera cloud's ground normal was measured 0.02-0.6 deg "
-                                                      "off on the simulated family)",
+                                                      "off on the simulated family); with "
+                                                      "ours_tilt_prior_measured, only where the road is too "
+                                                      "thin to measure it",
                                                 range=(0.0, 10.0))
+    ours_tilt_prior_measured: bool = cfg_field(True, "ours, pose mode: the tilt prior's 1-sigma measured per "
+                                                     "window, the rms scatter of the camera cloud's road "
+                                                     "normals in 4 blocks near to far (at least "
+                                                     "ours_edge_tilt_prior_min_deg; ours_edge_tilt_prior_deg "
+                                                     "when the road has too few points or this is off)")
+    ours_edge_tilt_prior_min_deg: float = cfg_field(0.1, "ours, pose mode: the measured tilt prior is at "
+                                                          "least this", range=(0.0, 10.0))
     ours_edge_height_prior_m: float = cfg_field(0.03, "ours, pose mode: 1-sigma prior of the height along the up "
                                                       "axis from the registered ground planes (vertical "
                                                       "silhouettes do not see it)", range=(0.0, 10.0))
@@ -918,6 +927,14 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     Ll = _level(lid, np.array([0.0, 0.0, 1.0]), rng)
     cs = transform_points(Ls, cloud_s)
     cl = transform_points(Ll, lid)
+    # how well the camera cloud's road fixes the tilt, measured on this window: the edge fit's tilt prior
+    # (the edges see the tilt weakly, and a fixed 0.3 deg let them pull it 0.5 deg off where the road
+    # was within 0.03 deg; on KITTI the road is 3 deg off and its blocks scatter 1-1.5 deg)
+    scatter = ground_normal_scatter_deg(cs)
+    if ours and cfg.ours_tilt_prior_measured and np.isfinite(scatter):
+        cfg = dataclasses.replace(cfg, ours_edge_tilt_prior_deg=float(
+            np.clip(scatter, cfg.ours_edge_tilt_prior_min_deg, 10.0)))
+    metrics_pre.update({"ground_normal_scatter_deg": scatter, "edge_tilt_prior_deg": cfg.ours_edge_tilt_prior_deg})
     ocfg = dataclasses.replace(cfg.objects, shape_mode="object" if ours else "voxel")
     acfg = dataclasses.replace(cfg.align, verify=ours or cfg.align.verify and solver != "paper",
                                use_z_ratio=False if ours else cfg.align.use_z_ratio)

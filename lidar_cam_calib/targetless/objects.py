@@ -139,6 +139,32 @@ def ground_plane(points: np.ndarray, rng: np.random.Generator, up_hint: np.ndarr
     return best
 
 
+def ground_normal_scatter_deg(levelled: np.ndarray, threshold_m: float = 0.08, blocks: int = 4,
+                              min_points: int = 30) -> float:
+    """How well a levelled cloud (z up, ground at z = 0) fixes its own up axis: its ground points
+    (|z| < ``threshold_m``) split into ``blocks`` equal shares along their longest horizontal extent
+    (for a camera cloud: near to far), a plane fitted to each, and the rms angle (deg) of their normals
+    from the vertical. NaN with fewer than ``min_points`` ground points per block.
+
+    The camera cloud's road is the least certain input of the tilt: on simulated windows its whole
+    plane was 0.02-0.19 deg off the truth and the blocks scattered 0.04-0.29 deg; on KITTI's
+    dev sequence it was 3 deg off in roll, from 6,000 road points whose blocks scattered 1.0-1.5 deg."""
+    p = np.asarray(levelled, float)
+    g = p[np.abs(p[:, 2]) < threshold_m]
+    if g.shape[0] < blocks * min_points:
+        return float("nan")
+    xy = g[:, :2] - g[:, :2].mean(axis=0)
+    _, _, vt = np.linalg.svd(xy, full_matrices=False)
+    along = xy @ vt[0]
+    order = np.argsort(along)
+    dev = []
+    for part in np.array_split(order, blocks):
+        b = g[part]
+        _, _, v = np.linalg.svd(b - b.mean(axis=0), full_matrices=False)
+        dev.append(np.degrees(np.arccos(min(abs(float(v[2, 2])), 1.0))))
+    return float(np.sqrt(np.mean(np.square(dev))))
+
+
 def level_rotation(n_up: np.ndarray) -> np.ndarray:
     """Smallest rotation R with ``R @ n_up = (0, 0, 1)``."""
     a = np.asarray(n_up, float) / np.linalg.norm(n_up)
@@ -351,4 +377,5 @@ def extract_objects(points: np.ndarray, cfg: ObjectConfig | None = None, ground_
 
 
 __all__ = ["FLAT", "LINEAR", "SCATTERED", "SHAPE_NAMES", "UNKNOWN", "ObjectConfig", "ObjectSet",
-           "extract_objects", "ground_plane", "level_rotation", "remove_ground", "voxel_shape_classes"]
+           "extract_objects", "ground_normal_scatter_deg", "ground_plane", "level_rotation", "remove_ground",
+           "voxel_shape_classes"]
