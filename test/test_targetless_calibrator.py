@@ -417,7 +417,7 @@ def test_edge_gate_share_follows_the_lidar_column_step():
 
 
 def test_a_refusal_points_a_sparse_lidar_to_the_board_method():
-    """With a 16-beam LiDAR (rings 2 deg apart) the target-less gates rarely pass; a refusal says so and
+    """With a 16-beam LiDAR (rings 2 deg apart) the target-less gates pass less often; a refusal says so and
     names the board method. Not for a 64-beam LiDAR, and not before a sweep has been measured."""
     from lidar_cam_calib.sim.lidar import PRESETS
     from lidar_cam_calib.targetless.edges import ring_spacing_deg

@@ -324,7 +324,7 @@ class TargetlessConfig:
     sparse_ring_spacing_deg: float = cfg_field(
         1.0, "advice: when a window is refused and the LiDAR's rings are farther apart than this (median, "
              "measured from a sweep: 2 deg on a 16-beam LiDAR, 0.33-0.53 deg on a VLP-32C, HDL-64 or OS1-64), "
-             "the refusal says that the target-less method rarely passes its gates with so sparse a LiDAR and "
+             "the refusal says that the target-less gates pass less often with so sparse a LiDAR and "
              "points to the board method", range=(0.1, 10.0))
     seed: int = cfg_field(0, "random seed of the RANSAC steps", range=(0, 2**31 - 1))
     objects: ObjectConfig = dataclasses.field(default_factory=lambda: ObjectConfig(radius_m=30.0))
@@ -501,8 +501,8 @@ class TargetlessCalibrator:
         if not (sp > self.cfg.sparse_ring_spacing_deg):
             return ""
         return (f". This LiDAR's {n} rings are {sp:.1f} deg apart: with rings this sparse the target-less "
-                "method rarely passes its gates (too few edges and too thin a cloud on the street's objects); "
-                "calibrate it on a checkerboard with board_calib_node instead")
+                "gates pass less often (fewer edges and a thinner cloud on the street's objects); if its "
+                "windows keep being refused, calibrate it on a checkerboard with board_calib_node instead")
 
     def status(self) -> dict:
         advice = ""
