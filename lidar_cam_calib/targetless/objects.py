@@ -35,7 +35,7 @@ import numpy as np
 
 from ..core.calibrator import cfg_field
 from ..core.errors import CalibError
-from ..core.fitting import FitError, ransac_plane
+from ..core.fitting import FitError, fit_plane_lsq, ransac_plane
 
 LINEAR, FLAT, SCATTERED, UNKNOWN = 0, 1, 2, 3
 SHAPE_NAMES = ("linear", "flat", "scattered", "unknown")
@@ -144,7 +144,7 @@ def ground_normal_scatter_deg(levelled: np.ndarray, threshold_m: float = 0.08, b
     """How well a levelled cloud (z up, ground at z = 0) fixes its own up axis: its ground points
     (|z| < ``threshold_m``) split into ``blocks`` equal shares along their longest horizontal extent
     (for a camera cloud: near to far), a plane fitted to each, and the rms angle (deg) of their normals
-    from the vertical. NaN with fewer than ``min_points`` ground points per block.
+    from the vertical. NaN with fewer than ``min_points`` ground points per block, or a block on a line.
 
     The camera cloud's road is the least certain input of the tilt: on simulated windows its whole
     plane was 0.02-0.19 deg off the truth and the blocks scattered 0.04-0.29 deg; on KITTI's
@@ -159,9 +159,11 @@ def ground_normal_scatter_deg(levelled: np.ndarray, threshold_m: float = 0.08, b
     order = np.argsort(along)
     dev = []
     for part in np.array_split(order, blocks):
-        b = g[part]
-        _, _, v = np.linalg.svd(b - b.mean(axis=0), full_matrices=False)
-        dev.append(np.degrees(np.arccos(min(abs(float(v[2, 2])), 1.0))))
+        try:
+            n, _ = fit_plane_lsq(g[part])
+        except FitError:
+            return float("nan")
+        dev.append(np.degrees(np.arccos(min(abs(float(n[2])), 1.0))))
     return float(np.sqrt(np.mean(np.square(dev))))
 
 
