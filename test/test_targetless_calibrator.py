@@ -445,3 +445,32 @@ def test_sweep_keeps_the_ring_field_of_its_valid_points():
                                       "ring": np.array([3, 4, 5, 6, 7], np.uint16)})
     assert sw.points.shape == (3, 3) and sw.ring.tolist() == [3, 6, 7]
     assert LidarSweep(0.0, pts, ring=np.arange(4)).ring is None
+
+
+def test_translation_ambiguity_refuses_edges_and_clouds_that_disagree():
+    """The translation along the street is settled by a distinct bird's-eye peak or a distinct edge
+    choice; when both stand out but put the camera metres apart (a tree crown's foliage jumps and a
+    facade's windows made the edges prefer a candidate 2.5 m along the street, slow seed 4916), the window
+    is refused as ambiguous, whatever its other gates say."""
+    from lidar_cam_calib.targetless.calibrator import translation_ambiguity
+    cfg = TargetlessConfig()
+    # the highest peak stands out and the edges chose it (or one that ended beside it): settled
+    assert translation_ambiguity(cfg, {"bev_peak_ratio": 2.0, "coarse_rank": 0, "coarse_edge_ratio": 1.5,
+                                       "coarse_bev_disagreement_m": 0.0}) == ""
+    assert translation_ambiguity(cfg, {"bev_peak_ratio": 1.3, "coarse_rank": 1, "coarse_edge_ratio": 1.9,
+                                       "coarse_bev_disagreement_m": 0.3}) == ""
+    # a flat bird's-eye correlation and distinct edges: the edges settle it, wherever they ended
+    assert translation_ambiguity(cfg, {"bev_peak_ratio": 1.05, "coarse_rank": 4, "coarse_edge_ratio": 1.6,
+                                       "coarse_bev_disagreement_m": 3.0}) == ""
+    # both distinct, 2.46 m apart: refused, naming both
+    why = translation_ambiguity(cfg, {"bev_peak_ratio": 2.01, "coarse_rank": 6, "coarse_edge_ratio": 1.45,
+                                      "coarse_bev_disagreement_m": 2.46})
+    assert "disagree along the street" in why and "2.01" in why and "2.46 m" in why
+    # neither distinct: the old refusal
+    why = translation_ambiguity(cfg, {"bev_peak_ratio": 1.02, "coarse_rank": 0, "coarse_edge_ratio": 1.05,
+                                      "coarse_bev_disagreement_m": 0.0})
+    assert "no distinct peak" in why and "1.02 < 1.15" in why
+    # the agreement distance is a parameter
+    assert translation_ambiguity(dataclasses.replace(cfg, ours_coarse_agree_m=3.0),
+                                 {"bev_peak_ratio": 2.01, "coarse_rank": 6, "coarse_edge_ratio": 1.45,
+                                  "coarse_bev_disagreement_m": 2.46}) == ""

@@ -490,3 +490,40 @@ def test_ring_spacing_of_each_preset_and_of_a_real_head():
     assert n == 32 and 0.5 < s < 1.5
     assert ring_spacing_deg(np.zeros((50, 3)))[0] == 0
     assert np.isnan(ring_spacing_deg(np.full((500, 3), np.nan))[1])
+
+
+def test_foliage_jumps_are_not_silhouettes_but_a_thin_pole_is():
+    """A tree crown lets a third of the rays through to the wall behind and scatters the others half a
+    metre deep: its depth jumps come every few points along a ring and meet no edge in the image. The
+    clutter count leaves them out and keeps both sides of a 12 cm pole (4-5 returns wide at 8 m)."""
+    rng = np.random.default_rng(3)
+    pole = (8.0, -1.06, -0.94, -1.5, 3.0, 0.5)
+    el = np.radians(np.linspace(-15.0, 15.0, 32))
+    az = np.radians(np.arange(-80.0, 80.0, 0.2))
+    E, A = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1).reshape(-1, 3)
+    t, _ = _cast(np.zeros(3), d, [pole])
+    # crown: a sphere of 1.5 m radius 10 m ahead, 3 m to the left
+    c, r = np.array([10.0, 3.0, 1.0]), 1.5
+    b = d @ c
+    disc = b * b - (c @ c - r * r)
+    t_in = b - np.sqrt(np.maximum(disc, 0.0))
+    crown = (disc > 0) & (t_in < t) & (rng.random(d.shape[0]) > 0.35)
+    t[crown] = t_in[crown] + rng.uniform(0.0, 0.5, int(crown.sum()))
+    ok = np.isfinite(t)
+    pts, crown = d[ok] * t[ok, None], crown[ok]
+    ring = np.repeat(np.arange(32), az.size)[ok]
+
+    def split(cfg):
+        Ed, kind = lidar_edges(pts, pts, None, cfg, ring=ring)
+        Ed = Ed[kind == 0]
+        in_crown = np.linalg.norm(Ed - c, axis=1) < r + 0.6
+        on_pole = (np.abs(Ed[:, 0] - 8.0) < 0.1) & (np.abs(np.abs(Ed[:, 1] + 1.0) - 0.06) < 0.06)
+        return int(in_crown.sum()), int(on_pole.sum())
+
+    crown_off, pole_off = split(EdgeConfig(clutter_window=0))
+    crown_on, pole_on = split(EdgeConfig())
+    rings_on_pole = int(np.sum((el > np.arctan2(-1.5, 8.0)) & (el < np.arctan2(3.0, 8.0))))  # rings that see it
+    assert crown_off > 100, crown_off  # without the count the crown brings more silhouettes than the pole
+    assert crown_on < 0.25 * crown_off, (crown_on, crown_off)
+    assert pole_on == pole_off and pole_on >= 2 * rings_on_pole - 4, (pole_on, pole_off, rings_on_pole)

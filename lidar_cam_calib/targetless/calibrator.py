@@ -199,6 +199,11 @@ class TargetlessConfig:
                                                        "this many times the best elsewhere's (or a distinct "
                                                        "bird's-eye peak)",
                                                   range=(1.0, 10.0))
+    ours_coarse_agree_m: float = cfg_field(1.0, "ours, gate: when the bird's-eye peak stands out (above "
+                                                "ours_min_bev_peak_ratio), the candidate the image edges chose "
+                                                "must end within this of it (the candidates' spacing: a fit "
+                                                "from the next peak may end between the two)",
+                                           range=(0.05, 50.0))
     coarse_radius_m: float = cfg_field(2.5, "ours: the largest horizontal distance between camera and LiDAR on "
                                             "the vehicle (m): the translation search radius about the position "
                                             "of a zero lever arm (the motion between sweep and image taken out)",
@@ -1018,8 +1023,12 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                     if best_i is not None:
                         t_lev = -peaks[best_i][0]
                         coarse_fit = fits[best_i]
+                        # where the edges' choice ended against the highest bird's-eye peak: two distinct
+                        # votes that put the camera apart along the street contradict each other
                         metrics.update({"coarse_candidates": len(peaks), "coarse_rank": best_i,
-                                        "coarse_edge_inliers": fits[best_i].inliers, "coarse_edge_ratio": ratio_e})
+                                        "coarse_edge_inliers": fits[best_i].inliers, "coarse_edge_ratio": ratio_e,
+                                        "coarse_bev_disagreement_m": float(np.linalg.norm(
+                                            fits[best_i].T[:3, 3] - Xc[0][:3, 3]))})
                     diag.coarse_candidates = list(zip(Xc, fits))
                 T_oba_lev = make_T(R_lev, t_lev)
             # translation-only point-to-plane ICP, camera cloud as the source (the rotation is better
@@ -1285,18 +1294,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                          "(moving traffic, or a registration that slid along the street); calibration rejected "
                          "(drive past parked cars, poles, trunks and facades close to the road, away from "
                          "traffic)")
-    # distinct translation: the chosen candidate's edges meet clearly better than anywhere else, or (the
-    # highest peak kept) its bird's-eye peak stands out
-    edge_distinct = metrics.get("coarse_edge_ratio", 0.0) >= cfg.ours_min_coarse_edge_ratio
-    bev_distinct = metrics.get("bev_peak_ratio", np.inf) >= cfg.ours_min_bev_peak_ratio and \
-        metrics.get("coarse_rank", 0) == 0
-    ambiguous = ""
-    if ours and not (edge_distinct or bev_distinct):
-        er = f", image-edge inliers chosen / best elsewhere {metrics['coarse_edge_ratio']:.2f} < " \
-             f"{cfg.ours_min_coarse_edge_ratio:.2f}" if "coarse_edge_ratio" in metrics else ""
-        ambiguous = (f"gate failed: the translation search has no distinct peak (best / best elsewhere "
-                     f"{metrics['bev_peak_ratio']:.2f} < {cfg.ours_min_bev_peak_ratio:.2f}{er}): the street "
-                     "looks the same along its axis; calibration rejected (drive past poles, trunks, signs)")
+    ambiguous = translation_ambiguity(cfg, metrics) if ours else ""
     try:
         _later_gates(cfg, metrics, ours, pose_edge, pe, edge, min_inliers, metrics_step, pred, ha, how)
     except CalibError:
@@ -1307,6 +1305,30 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     if ambiguous:
         raise AmbiguousWindow(ambiguous, T_final, cov, metrics)
     return T_final, cov, metrics
+
+
+def translation_ambiguity(cfg: TargetlessConfig, metrics: dict) -> str:
+    """Why the translation along the street is not settled ("" when it is), from the coarse search's
+    figures in ``metrics``. Settled: the candidate the image edges chose meets them clearly better than
+    anywhere else, or (the highest peak kept) the bird's-eye peak stands out; and when the bird's-eye peak
+    stands out, the edges' choice ends within ``ours_coarse_agree_m`` of it (two distinct votes for places
+    metres apart mean one of them matched a repeated structure)."""
+    edge_distinct = metrics.get("coarse_edge_ratio", 0.0) >= cfg.ours_min_coarse_edge_ratio
+    bev_stands_out = metrics.get("bev_peak_ratio", np.inf) >= cfg.ours_min_bev_peak_ratio
+    apart = metrics.get("coarse_bev_disagreement_m", 0.0)
+    if bev_stands_out and apart > cfg.ours_coarse_agree_m:
+        return (f"gate failed: the image edges and the clouds disagree along the street (the bird's-eye peak "
+                f"stands out by {metrics['bev_peak_ratio']:.2f}, but the edges meet best {apart:.2f} m from it, "
+                f"{metrics.get('coarse_edge_ratio', float('nan')):.2f} times better than elsewhere): one of them "
+                "matched a repeated structure (foliage, a facade's windows); calibration rejected (drive past "
+                "poles, trunks and signs close to the road)")
+    if edge_distinct or (bev_stands_out and metrics.get("coarse_rank", 0) == 0):
+        return ""
+    er = f", image-edge inliers chosen / best elsewhere {metrics['coarse_edge_ratio']:.2f} < " \
+         f"{cfg.ours_min_coarse_edge_ratio:.2f}" if "coarse_edge_ratio" in metrics else ""
+    return (f"gate failed: the translation search has no distinct peak (best / best elsewhere "
+            f"{metrics['bev_peak_ratio']:.2f} < {cfg.ours_min_bev_peak_ratio:.2f}{er}): the street "
+            "looks the same along its axis; calibration rejected (drive past poles, trunks, signs)")
 
 
 def _later_gates(cfg: TargetlessConfig, metrics: dict, ours: bool, pose_edge: bool, pe, edge, min_inliers: float,

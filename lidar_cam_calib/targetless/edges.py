@@ -47,6 +47,12 @@ class EdgeConfig:
     depth_jump_rel: float = cfg_field(0.08, "... and this fraction of the near range farther", range=(0.0, 1.0))
     smooth_rel: float = cfg_field(0.02, "a silhouette's near side must be continuous: its other neighbour "
                                         "within this fraction of the range (+5 cm)", range=(0.0, 1.0))
+    clutter_window: int = cfg_field(4, "silhouette: depth jumps are counted over this many neighbouring pairs on "
+                                       "each side along the scan line (0: no count)", range=(0, 50))
+    clutter_max_jumps: int = cfg_field(2, "... and a silhouette with more jumps than this around it (its own "
+                                          "included) is left out: foliage, where rays pass through gaps in the "
+                                          "crown, jumps at every other point, and its jumps meet no edge in the "
+                                          "image (a thin pole brings two)", range=(1, 100))
     intensity_jump: float = cfg_field(0.25, "paint edge: intensity step over the sweep's 95th percentile",
                                       range=(0.01, 10.0))
     paint_ground_m: float = cfg_field(0.2, "paint edges only on the road: both returns within this of the sweep's "
@@ -203,6 +209,11 @@ def lidar_edges(raw: np.ndarray, pts: np.ndarray, intensity: np.ndarray | None, 
     next_ok = np.concatenate([cont[1:], [False]])   # pair j+1 continuous: b's far side
     a_near = ra < rb
     sil = adj & jump & inr & np.where(a_near, prev_ok, next_ok)
+    if cfg.clutter_window > 0 and sil.any():
+        # depth jumps among the neighbouring pairs of the same ring (pairs across a ring break are not adjacent)
+        w = int(cfg.clutter_window)
+        n_jumps = np.convolve((adj & jump).astype(float), np.ones(2 * w + 1), mode="same")
+        sil &= n_jumps <= cfg.clutter_max_jumps + 0.5
     idx = np.where(a_near[sil], a[sil], b[sil])
     # the silhouette lies between the two rays: put it on the mean ray at the near range (the near point
     # alone sits inside the object by up to one azimuth step), moved as the near point was de-skewed
