@@ -346,14 +346,15 @@ PERTURB_LEVELS = ((10.0, 0.25), (2.0, 0.1), (0.5, 0.05))
 
 
 def perturbed_edge_starts(views: list, cam, T_true: np.ndarray, axes: tuple, n: int, ref_points: np.ndarray,
-                          seed: int = 0, levels=PERTURB_LEVELS) -> dict:
+                          seed: int = 0, levels=PERTURB_LEVELS, kinds_views: list | None = None) -> dict:
     """The edge refinement alone (``ours``'s image-edge stage, all six degrees of freedom, no ground-plane
     priors) started from the official calibration perturbed as the learned methods' protocol does: each of
     the three rotation angles and translation components uniform within +/- (deg, m) of each level, ``n``
     starts per level, plus one from the official calibration itself. Each start's errors against
     ``T_true`` after the fit; ``converged``: within 0.5 deg and 0.1 m of it. ``edge_kinds_at_official``:
     how often each kind of edge meets the image edges at the official calibration, and chance
-    (:func:`~lidar_cam_calib.targetless.edges.edge_kind_inliers`)."""
+    (:func:`~lidar_cam_calib.targetless.edges.edge_kind_inliers`), on ``kinds_views`` when given (the window's
+    views with their paint edges, which the fit may have left out)."""
     from ..targetless.edges import edge_kind_inliers, refine_pose
     rng = np.random.default_rng(seed)
     d, up = axes
@@ -370,7 +371,7 @@ def perturbed_edge_starts(views: list, cam, T_true: np.ndarray, axes: tuple, n: 
                 "y_error_px": ey, "edge_inliers": f.inliers}
 
     out = {"from_official": fit(T_true), "levels": [],
-           "edge_kinds_at_official": edge_kind_inliers(views, cam, T_true, cfg)}
+           "edge_kinds_at_official": edge_kind_inliers(kinds_views or views, cam, T_true, cfg)}
     for rot_deg, tr_m in levels:
         runs = []
         for _ in range(n):
@@ -415,7 +416,8 @@ def kitti_window(kitti_dir, start: int = 0, solvers=("ours",), overlay: str = ""
     out["solvers"], _, est = solve_all(cal, base, solvers, cam, T_true, ref.points, None, diags)
     if perturb > 0 and "ours" in diags and diags["ours"].edge_views:
         out["perturbed_edge_starts"] = perturbed_edge_starts(diags["ours"].edge_views, cam, T_true,
-                                                             diags["ours"].edge_axes, perturb, ref.points)
+                                                             diags["ours"].edge_axes, perturb, ref.points,
+                                                             kinds_views=diags["ours"].edge_views_with_paint)
     if overlay:
         import cv2
 

@@ -352,6 +352,7 @@ class WindowDiagnostics:
     # ours: the edge views the fit used (silhouettes only when the paint was left out) and its (driving
     # direction, up) in the camera frame
     edge_views: list = dataclasses.field(default_factory=list)
+    edge_views_with_paint: list = dataclasses.field(default_factory=list)  # the same before any paint was dropped
     edge_axes: tuple | None = None
     # the gate's registered overlap: LiDAR points (reference sweep, de-skewed), the levelled camera cloud, its
     # KD-tree, normals and per-point depth sigma, the levelling Ls and T_sweep_img (for distances at any T)
@@ -1133,6 +1134,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             return f
 
         pe = first_fit(views)
+        diag.edge_views_with_paint = views
         if pe is not None and cfg.ours_paint_min_lift > 0:
             # paint edges that meet the image no better than chance only pull the fit, and a handful of them
             # claims a pitch the fit cannot know: redo it without them
