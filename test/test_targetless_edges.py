@@ -527,3 +527,20 @@ def test_foliage_jumps_are_not_silhouettes_but_a_thin_pole_is():
     assert crown_off > 100, crown_off  # without the count the crown brings more silhouettes than the pole
     assert crown_on < 0.25 * crown_off, (crown_on, crown_off)
     assert pole_on == pole_off and pole_on >= 2 * rings_on_pole - 4, (pole_on, pole_off, rings_on_pole)
+
+
+def test_dispersion_scale_leaves_out_an_image_that_sees_no_edge():
+    """An image whose edge points all lie on the truncated plateau of its distance field brings a zero
+    information matrix; the dispersion scale leaves it out instead of failing on a singular solve (slow
+    seed 5108 stopped the benchmark that way)."""
+    from lidar_cam_calib.targetless.edges import _scale
+    rng = np.random.default_rng(0)
+    Hs, gs = [], []
+    for _ in range(3):
+        A = rng.normal(size=(50, 6))
+        Hs.append(A.T @ A)
+        gs.append(rng.normal(size=6))
+    ref = _scale(Hs, gs, 0.0, 6)
+    assert np.isfinite(ref) and ref > 0
+    assert _scale(Hs + [np.zeros((6, 6))], gs + [np.zeros(6)], 0.0, 6) == ref
+    assert _scale([np.zeros((6, 6))], [np.zeros(6)], 0.25, 6) == 0.25  # nothing seen: the naive variance

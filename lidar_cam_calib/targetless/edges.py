@@ -638,13 +638,19 @@ def _scale(Hs: list, gs: list, naive: float, m: int) -> float:
     """Residual variance that makes the images' linearised optima about the joint one scatter as their
     own information predicts (each image's step, damped where it alone sees nothing, and its squared
     Mahalanobis length under that image's information average m * (K-1) / K); never below the naive
-    residual variance."""
+    residual variance. An image with no information (every point on the truncated plateau of its field, no
+    gradient: it sees no edge near any of its points) has no optimum of its own and is left out."""
     m2 = []
     for Hk, gk in zip(Hs, gs):
-        Ak = Hk + 1e-6 * np.trace(Hk) * np.eye(m)
-        dk = -np.linalg.solve(Ak, gk)
+        tr = float(np.trace(Hk))
+        if not np.isfinite(tr) or tr <= 0.0:
+            continue
+        try:
+            dk = -np.linalg.solve(Hk + 1e-6 * tr * np.eye(m), gk)
+        except np.linalg.LinAlgError:
+            continue
         m2.append(float(dk @ Hk @ dk))
-    k = len(Hs)
+    k = len(m2)
     return max(float(np.sum(m2) / (m * max(k - 1, 1))), naive)
 
 
