@@ -210,7 +210,8 @@ def lidar_edges(raw: np.ndarray, pts: np.ndarray, intensity: np.ndarray | None, 
     a_near = ra < rb
     sil = adj & jump & inr & np.where(a_near, prev_ok, next_ok)
     if cfg.clutter_window > 0 and sil.any():
-        # depth jumps among the neighbouring pairs of the same ring (pairs across a ring break are not adjacent)
+        # depth jumps among the neighbouring pairs along the ring (a pair across a ring break is not adjacent;
+        # within w pairs of a ring's ends the next ring's first pairs are counted too)
         w = int(cfg.clutter_window)
         n_jumps = np.convolve((adj & jump).astype(float), np.ones(2 * w + 1), mode="same")
         sil &= n_jumps <= cfg.clutter_max_jumps + 0.5
