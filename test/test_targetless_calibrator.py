@@ -449,8 +449,8 @@ def test_sweep_keeps_the_ring_field_of_its_valid_points():
 
 def test_translation_ambiguity_refuses_edges_and_clouds_that_disagree():
     """The translation along the street is settled by a distinct bird's-eye peak or a distinct edge
-    choice; when both stand out but put the camera metres apart (a tree crown's foliage jumps and a
-    facade's windows made the edges prefer a candidate 2.5 m along the street, slow seed 4916), the window
+    choice; when both stand out but put the camera metres apart (a tree crown's foliage jumps and the lane
+    lines made the edges prefer a candidate 2.5 m along the street, slow seed 4916), the window
     is refused as ambiguous, whatever its other gates say."""
     from lidar_cam_calib.targetless.calibrator import translation_ambiguity
     cfg = TargetlessConfig()

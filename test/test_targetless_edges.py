@@ -511,7 +511,7 @@ def test_foliage_jumps_are_not_silhouettes_but_a_thin_pole_is():
     crown = (disc > 0) & (t_in < t) & (rng.random(d.shape[0]) > 0.35)
     t[crown] = t_in[crown] + rng.uniform(0.0, 0.5, int(crown.sum()))
     ok = np.isfinite(t)
-    pts, crown = d[ok] * t[ok, None], crown[ok]
+    pts = d[ok] * t[ok, None]
     ring = np.repeat(np.arange(32), az.size)[ok]
 
     def split(cfg):
