@@ -544,3 +544,40 @@ def test_dispersion_scale_leaves_out_an_image_that_sees_no_edge():
     assert np.isfinite(ref) and ref > 0
     assert _scale(Hs + [np.zeros((6, 6))], gs + [np.zeros(6)], 0.0, 6) == ref
     assert _scale([np.zeros((6, 6))], [np.zeros(6)], 0.25, 6) == 0.25  # nothing seen: the naive variance
+
+
+def test_kind_check_sees_one_kind_of_edge_part_from_the_other():
+    """The silhouettes on every other scan line are labelled as the second kind (paint: a kind the scene
+    does not have, but the check only needs two independent sets of edges). Where both sets are placed
+    right, their separate fits agree within their covariances. With one set moved 10 cm sideways in every
+    sweep (a placement bias all images share, which the leave-one-image-out spread cannot see), they part
+    beyond them, and the widened covariance spans each set's fit about the result."""
+    import dataclasses
+    from lidar_cam_calib.targetless.calibrator import TargetlessConfig, _delta, _edge_fit, _kind_fits, kind_widened
+    from lidar_cam_calib.targetless.edges import prepare_view
+    cfg = TargetlessConfig()
+    cfg = dataclasses.replace(cfg, edges=dataclasses.replace(cfg.edges, min_points=50))
+    chi2 = {}
+    for shift in (0.0, 0.1):
+        cam, X, views = _views()
+        for v in views:
+            prepare_view(v, cfg.edges)
+            el = np.degrees(np.arctan2(v.edges[:, 2], np.hypot(v.edges[:, 0], v.edges[:, 1])))
+            v.kinds = np.round((el + 15.0) * 31.0 / 30.0).astype(int) % 2   # the scene's 32 rings, -15..15 deg
+            v.edges[v.kinds == 0] += np.array([0.0, shift, 0.0])
+        assert all((v.kinds == 0).sum() > 100 and (v.kinds == 1).sum() > 100 for v in views)
+        up = X[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        pe = _edge_fit(views, cam, X, (None, up), cfg, X)
+        fits, m = _kind_fits(views, cam, pe, (None, up), cfg, X)
+        assert fits is not None
+        chi2[shift] = m["edge_kind_chi2"]
+        C = kind_widened(pe.cov, pe.T, [f.T for f in fits])
+        assert np.min(np.linalg.eigvalsh(C - pe.cov)) > -1e-12
+        for f in fits:
+            d = _delta(f.T, pe.T)
+            assert d @ np.linalg.solve(C, d) <= 1.0 + 1e-6
+    assert chi2[0.0] < 3.0 and chi2[0.1] > 3 * 16.8, chi2
+    # one kind without edges: no check
+    for v in views:
+        v.kinds[:] = 0
+    assert _kind_fits(views, cam, pe, (None, up), cfg, X) == (None, {})

@@ -233,6 +233,11 @@ def bench_windows(run, seed: int, speed: str, n_windows: int, known_offset: bool
         # the window's own figures (edge inliers, dispersion, Hausdorff, peak ratios...), accepted or not: what
         # a gate or the covariance could be judged on offline
         w["metrics"] = _numeric(cal.last_diagnostics.metrics)
+        d = cal.last_diagnostics
+        if d.edge_kind_T is not None:  # the per-kind edge fits, to judge the kind check's widening offline
+            w["kind_T"] = [T.tolist() for T in d.edge_kind_T]
+            w["kind_cov"] = d.edge_kind_cov.tolist()
+            w["kind_errors"] = [_errors(run.camera, T, None, T_true, ref.points) for T in d.edge_kind_T]
         if res is not None:
             fused_rec = {"accepted": True, **_errors(run.camera, res.T_child_parent, res.covariance, T_true,
                                                      ref.points),
