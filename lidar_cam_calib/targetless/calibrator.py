@@ -139,9 +139,10 @@ class TargetlessConfig:
              "their silhouettes, measured at another time than the image, held slow 5100 window 0 113 mm off "
              "(with this test 27 mm). 0: off", range=(0.0, 50.0))
     dynamic_cluster_max_move_m: float = cfg_field(
-        3.0, "... tested only when the car moved at most this between the compared sweeps: seen from places "
-             "farther apart, a static object's footprint changes and matches elsewhere (simulated at 20 m/s: "
-             "5 % of the static points above the ground flagged)", range=(0.0, 100.0))
+        3.0, "... compared with the sweeps dynamic_sweep_gap apart, or fewer when the car moved more than this "
+             "between them (none when it did even one sweep apart): seen from places farther apart, a static "
+             "object's footprint changes and matches elsewhere (simulated at 20 m/s three sweeps apart: 5 % of "
+             "the static points above the ground flagged)", range=(0.0, 100.0))
     time_offset_s: float = cfg_field(0.0, "known camera clock minus LiDAR clock", range=(-5.0, 5.0))
     time_offset_sigma_s: float = cfg_field(0.01, "1-sigma prior of the unknown part of the clock offset "
                                                  "(enters the covariance times the speed)", range=(0.0, 1.0))
@@ -988,10 +989,15 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             gd = _ground_of(jk)
             if cfg.dynamic_cluster_speed_mps > 0:
                 if jk not in walk_cache:  # people walking: whole clusters that moved (the point test misses them)
-                    nb = [jk + dj for dj in (-cfg.dynamic_sweep_gap, cfg.dynamic_sweep_gap) if 0 <= jk + dj < len(use)]
-                    T_nb = [inv_T(poses[jk]) @ poses[i] for i in nb]
                     walk_cache[jk] = np.zeros(sw.points.shape[0], bool)
-                    if nb and max(np.linalg.norm(T[:3, 3]) for T in T_nb) <= cfg.dynamic_cluster_max_move_m:
+                    for gap in range(cfg.dynamic_sweep_gap, 0, -1):  # the widest gap the car's move allows
+                        nb = [jk + dj for dj in (-gap, gap) if 0 <= jk + dj < len(use)]
+                        T_nb = [inv_T(poses[jk]) @ poses[i] for i in nb]
+                        if nb and max(np.linalg.norm(T[:3, 3]) for T in T_nb) <= cfg.dynamic_cluster_max_move_m:
+                            break
+                    else:
+                        nb = []
+                    if nb:
                         walk_cache[jk] = moving_clusters(
                             pk, gd > cfg.ground_static_m, [_deskewed(i) for i in nb],
                             [_ground_of(i) > cfg.ground_static_m for i in nb], T_nb,
