@@ -73,7 +73,7 @@ from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
-from .edges import (EdgeConfig, EdgeView, azimuth_step_rad, edge_kind_inliers, prepare_view, refine_pose,
+from .edges import (EdgeConfig, EdgeView, azimuth_step_rad, edge_kind_inliers, of_kind, refine_pose,
                     refine_translation, ring_spacing_deg, without_paint, yaw_about_edges)
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, moving_clusters, point_motion,
                       voxel_down)
@@ -776,14 +776,7 @@ def _kind_fits(views: list, cam, pe, axes: tuple, cfg: TargetlessConfig, centre:
     reflectance steps on the road), so beyond their covariances they must agree: ``edge_kind_chi2`` is
     their difference's chi-square (6 DoF) against the sum of their covariances. None when either kind has
     too few edges to fit."""
-    fits = []
-    for k in (0, 1):
-        vk = []
-        for v in views:
-            prepare_view(v, cfg.edges)
-            m = v.kinds == k
-            vk.append(dataclasses.replace(v, edges=v.edges[m], kinds=v.kinds[m]))  # the image fields shared
-        fits.append(_edge_fit(vk, cam, pe.T, axes, cfg, centre))
+    fits = [_edge_fit(of_kind(views, cfg.edges, k), cam, pe.T, axes, cfg, centre) for k in (0, 1)]
     if fits[0] is None or fits[1] is None:
         return None, {}
     d = _delta(fits[0].T, fits[1].T)
@@ -966,11 +959,15 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         ground_cache: dict = {}  # sweep -> each point's distance to its ground plane
         walk_cache: dict = {}    # sweep -> points on clusters that moved (moving_clusters)
 
+        deskew_cache: dict = {}  # neighbouring sweep -> de-skewed points (the walker test's)
+
         def _deskewed(j: int) -> np.ndarray:
             if j in static_cache:
                 return static_cache[j][0]
-            sj = sweeps[use[j]]
-            return deskew_sweep(sj, link_of(j).T, cfg) if cfg.deskew else sj.points
+            if j not in deskew_cache:
+                sj = sweeps[use[j]]
+                deskew_cache[j] = deskew_sweep(sj, link_of(j).T, cfg) if cfg.deskew else sj.points
+            return deskew_cache[j]
 
         def _ground_of(j: int) -> np.ndarray:
             if j not in ground_cache:
@@ -1383,12 +1380,13 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         kind_T = [f.T for f in kind_fits]
         kind_cov = kind_widened(cov, T_final, kind_T if cfg.ours_edge_kind_widen == "both" else kind_T[1:])
         diag.edge_kind_T, diag.edge_kind_cov = kind_T, kind_cov
-        metrics["predicted_x_px_kind"], metrics["predicted_y_px_kind"] = predicted_projection_px(
-            cam, T_final, kind_cov, ref_sweep.points)
+        pred_kind = predicted_projection_px(cam, T_final, kind_cov, ref_sweep.points)
+        metrics["predicted_x_px_kind"], metrics["predicted_y_px_kind"] = pred_kind
         metrics["edge_kind_widened"] = int(metrics["edge_kind_chi2"] > cfg.ours_edge_kind_chi2)
         if metrics["edge_kind_widened"]:
             cov = kind_cov
-    pred = predicted_projection_px(cam, T_final, cov, ref_sweep.points)
+    pred = pred_kind if metrics.get("edge_kind_widened") else predicted_projection_px(cam, T_final, cov,
+                                                                                       ref_sweep.points)
     metrics["predicted_x_px"], metrics["predicted_y_px"] = pred
     diag.metrics = metrics
     haus = metrics["hausdorff_m"]

@@ -484,14 +484,20 @@ def edge_kind_inliers(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeCon
             "chance": float(np.mean(near)) if near else float("nan")}
 
 
-def without_paint(views: list, cfg: EdgeConfig) -> list:
-    """The views with their silhouettes only (the image and its distance fields are shared)."""
+def of_kind(views: list, cfg: EdgeConfig, kind: int) -> list:
+    """The views with their edges of one kind only (0 silhouettes, 1 paint; the image and its distance
+    fields are shared)."""
     out = []
     for v in views:
         prepare_view(v, cfg)
-        sil = v.kinds == 0
-        out.append(dataclasses.replace(v, edges=v.edges[sil], kinds=v.kinds[sil]))
+        m = v.kinds == kind
+        out.append(dataclasses.replace(v, edges=v.edges[m], kinds=v.kinds[m]))
     return out
+
+
+def without_paint(views: list, cfg: EdgeConfig) -> list:
+    """The views with their silhouettes only (the image and its distance fields are shared)."""
+    return of_kind(views, cfg, 0)
 
 
 def yaw_about_edges(views: list, X: np.ndarray, up: np.ndarray, deg: float) -> np.ndarray:
@@ -816,4 +822,4 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
 
 __all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "azimuth_step_rad", "edge_kind_inliers",
            "image_distance", "lidar_edges", "prepare_view", "proj_jacobian", "refine_pose", "refine_translation",
-           "without_paint", "yaw_about_edges"]
+           "of_kind", "without_paint", "yaw_about_edges"]
