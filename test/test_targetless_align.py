@@ -5,8 +5,9 @@ import pytest
 from lidar_cam_calib.core.errors import CalibError
 from lidar_cam_calib.core.geometry import make_T, transform_points
 from lidar_cam_calib.targetless.align import AlignConfig, hough_align, icp_point_to_plane, rz
+from lidar_cam_calib.targetless.dynamic import voxel_down
 from lidar_cam_calib.targetless.objects import (LINEAR, ObjectConfig, extract_objects, ground_plane,
-                                                level_rotation)
+                                                level_rotation, voxel_index)
 
 
 def _cylinder(rng, c, r, h, n):
@@ -174,3 +175,25 @@ def test_bev_translation_lists_the_peaks_of_a_repeating_street():
     t1, _, ratio1, peaks1 = layered_bev_translation(tgt, src, 0.0, radius_m=7.0)
     assert np.allclose(t1, t) and ratio1 == ratio
     assert len(peaks1) == 1 and np.allclose(peaks1[0][0], t) and peaks1[0][1] == 1.0
+
+
+def test_voxel_means_match_the_row_by_row_reference():
+    """The one-key voxel index numbers the voxels as np.unique over rows does, and the voxel means are the
+    same bit for bit (the odometry's ICP and its scale start from them), also for points kilometres apart
+    (the key would overflow: the rows are used) and for no points."""
+    rng = np.random.default_rng(3)
+
+    def reference(p, v):
+        key = np.floor(p / v).astype(np.int64)
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        out = np.zeros((cnt.size, 3))
+        np.add.at(out, inv.ravel(), p)
+        return out / cnt[:, None]
+    for p in (rng.normal(size=(20000, 3)) * [25.0, 25.0, 3.0], np.array([[0.0, 0.0, 0.0], [4e15, -3e15, 1.0],
+                                                                       [0.05, 0.0, 0.0]])):
+        for v in (0.4, 0.1):
+            ref = reference(p, v)
+            assert np.array_equal(voxel_down(p, v), ref) and ref.shape[0] < p.shape[0]
+            inv, cnt = voxel_index(p, v)
+            assert cnt.sum() == p.shape[0] and np.array_equal(np.bincount(inv), cnt)
+    assert voxel_down(np.zeros((0, 3)), 0.4).shape == (0, 3)

@@ -947,6 +947,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     views = []
     min_inliers = cfg.ours_min_edge_inliers
     metrics_step = {}
+    t_views = time.perf_counter()
     if ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "pose":
         # an edge point is measured up to one column step from the true edge: with a step wider than the
         # one the inlier share was set on, fewer correct points are within 1.5 px; ask for that many less
@@ -1004,6 +1005,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             views.append(EdgeView(ims[k], sw.points, pk, sw.intensity, st | (gd <= cfg.ground_static_m),
                                   inv_T(poses[jk]) @ P_img[k], ring=sw.ring,
                                   ground=gd <= cfg.edges.paint_ground_m if cfg.edges.paint_ground_m > 0 else None))
+    tm["edge_views"] = time.perf_counter() - t_views
     # -- camera cloud: only points whose triangulation is precise (forward motion: far points ahead have
     # tiny parallax and metre-level depth errors); sigma from the SfM's own re-projection error
     cloud_all = np.concatenate([dense, sfm.points])
@@ -1225,6 +1227,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             return f
 
         pe = first_fit(views)
+        tm["edge_first_fit"] = time.perf_counter() - t5
         diag.edge_views_with_paint = views
         if pe is not None and cfg.ours_paint_min_lift > 0:
             # paint edges that meet the image no better than chance only pull the fit, and a handful of them
@@ -1240,14 +1243,17 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                 views = without_paint(views, cfg.edges)
                 pe = first_fit(views)
         diag.edge_views, diag.edge_axes = views, axes_centre
+        t6 = time.perf_counter()
         if pe is not None and cfg.ours_edge_restart_yaw_deg > 0:
             pe, metrics["edge_restart_yaw_deg"] = _edge_restarts(views, cam, pe, Ll, link.T, cfg, T_final)
+        tm["edge_restarts"], t6 = time.perf_counter() - t6, time.perf_counter()
         spread = None
         if pe is not None and (cfg.ours_edge_basin_along_m > 0 or cfg.ours_edge_basin_side_m > 0):
             pe1 = pe
             pe, spread, metrics["edge_basin_fits"], metrics["edge_basin_starts"] = _edge_basins(
                 views, cam, pe, Ll, link.T, cfg, T_final)
             metrics["edge_basin_moved"] = int(pe is not pe1)
+        tm["edge_basins"], t6 = time.perf_counter() - t6, time.perf_counter()
         if pe is not None and cfg.ours_edge_jackknife:
             cj, n_jk = _jackknife_cov(views, cam, pe, _drive_axes(pe.T, Ll, link.T), cfg, T_final)
             metrics["edge_jackknife_refits"] = n_jk
@@ -1255,9 +1261,11 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
                 pe = _widen(pe, cj, metrics, "edge_jackknife_inflation")
         if pe is not None and spread is not None:
             pe = _widen(pe, spread, metrics, "edge_basin_inflation")
+        tm["edge_jackknife"], t6 = time.perf_counter() - t6, time.perf_counter()
         if pe is not None and cfg.ours_edge_kind_check:
             kind_fits, kind_m = _kind_fits(views, cam, pe, _drive_axes(pe.T, Ll, link.T), cfg, T_final)
             metrics.update(kind_m)
+        tm["edge_kind"] = time.perf_counter() - t6
         diag.edge_pose = pe
         tm["edges"] = time.perf_counter() - t5
         if pe is not None:
@@ -1315,6 +1323,8 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     tm["pnp"] = time.perf_counter() - t4
     tm["total"] = time.perf_counter() - t0
     metrics["runtime_s"] = tm["total"]
+    # where the time went (s): the stages, the edge views (de-skew, motion tests) and the edge fit's parts
+    metrics.update({f"time_{k}_s": float(v) for k, v in tm.items() if k != "total"})
     # -- covariance: ICP information (levelled camera-cloud space) mapped to the camera frame,
     # inflated for correlated residuals, plus the scale and the clock priors
     cov = np.zeros((6, 6))

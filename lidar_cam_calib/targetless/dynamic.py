@@ -33,16 +33,17 @@ from scipy.spatial import cKDTree
 from ..core.errors import CalibError
 from ..core.geometry import inv_T, make_T, so3_exp, so3_log
 from .align import AlignConfig, estimate_normals, icp_point_to_plane, layered_bev_translation
-from .objects import ObjectConfig, facade_mask
+from .objects import ObjectConfig, facade_mask, voxel_index
 
 
 def voxel_down(p: np.ndarray, voxel_m: float) -> np.ndarray:
-    """One point (the mean) per occupied voxel."""
-    key = np.floor(p / voxel_m).astype(np.int64)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
-    out = np.zeros((cnt.size, 3))
-    np.add.at(out, inv, p)
+    """One point (the mean) per occupied voxel, the voxels in lexicographic order of their indices."""
+    p = np.asarray(p, float)
+    inv, cnt = voxel_index(p, voxel_m)
+    if cnt.size == 0:
+        return np.zeros((0, 3))
+    # per-voxel sums in point order, as np.add.at adds them (the same sums, bit for bit)
+    out = np.stack([np.bincount(inv, weights=p[:, k], minlength=cnt.size) for k in range(3)], axis=1)
     return out / cnt[:, None]
 
 

@@ -199,6 +199,23 @@ def remove_ground(p: np.ndarray, cfg: ObjectConfig, ground_z: float = 0.0) -> np
     return p[:, 2] - zg.ravel()[flat] < cfg.ground_height_m
 
 
+def voxel_index(p: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(each point's voxel, each voxel's point count) of ``p`` (N,3) on a ``voxel_m`` grid, the voxels in
+    lexicographic order of their (x, y, z) indices, as ``np.unique(key, axis=0)`` numbers them: one integer
+    key per point instead of rows, about ten times faster on a 100k-point sweep."""
+    key = np.floor(np.asarray(p, float) / voxel_m).astype(np.int64)
+    if key.shape[0] == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    key -= key.min(axis=0)
+    span = key.max(axis=0) + 1
+    if np.prod(span.astype(float)) >= 2.0 ** 62:  # a key would overflow (points kilometres apart): by rows
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        return inv.ravel(), cnt
+    _, inv, cnt = np.unique((key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2], return_inverse=True,
+                            return_counts=True)
+    return inv.ravel(), cnt
+
+
 def facade_mask(p: np.ndarray, cand: np.ndarray, cfg: ObjectConfig, seed: int = 7) -> np.ndarray:
     """Points on long vertical planes (facades, fences, walls), found by repeated RANSAC."""
     rng = np.random.default_rng(seed)
@@ -219,8 +236,9 @@ def facade_mask(p: np.ndarray, cand: np.ndarray, cfg: ObjectConfig, seed: int = 
             break
         nrm = np.stack([-d[ok, 1], d[ok, 0]], 1) / ln[ok, None]
         off = -np.einsum("ij,ij->i", nrm, q[a[ok], :2])
-        dist = np.abs(q[:, :2] @ nrm.T + off)
-        cnt = (dist < cfg.wall_dist_m).sum(axis=0)
+        cnt = np.zeros(nrm.shape[0], np.int64)
+        for s in range(0, q.shape[0], 4096):  # in blocks: the same counts, a third faster than all at once
+            cnt += (np.abs(q[s:s + 4096, :2] @ nrm.T + off) < cfg.wall_dist_m).sum(axis=0)
         k = int(np.argmax(cnt))
         n2, o2 = nrm[k], off[k]
         m = np.abs(p[idx, :2] @ n2 + o2) < cfg.wall_dist_m
@@ -293,9 +311,8 @@ def extract_objects(points: np.ndarray, cfg: ObjectConfig | None = None, ground_
         cand &= ~facade_mask(p, cand, cfg)
     if cfg.min_voxel_points > 1:
         ci = np.nonzero(cand)[0]
-        key = np.floor(p[ci] / cfg.voxel_m).astype(np.int64)
-        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-        cand[ci[cnt[inv.ravel()] < cfg.min_voxel_points]] = False
+        inv, cnt = voxel_index(p[ci], cfg.voxel_m)
+        cand[ci[cnt[inv] < cfg.min_voxel_points]] = False
     idx = np.nonzero(cand)[0]
     empty = ObjectSet(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64),
                       np.zeros(0, np.int64), labels, ground)
