@@ -106,17 +106,26 @@ class SfmResult:
         return np.array([inv_T(T)[:3, 3] for T in self.poses])
 
 
+_UNDISTORT_MAPS: dict = {}  # camera -> (mx, my): a window undistorts its images about 20 times
+
+
 def ideal_image(img: np.ndarray, camera: CameraModel) -> np.ndarray:
     """Undistorted image with the same K (identity when the camera has no distortion)."""
     if not camera.is_distorted:
         return img
     import cv2
-    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
-    rays = np.stack([(u.ravel() - camera.cx) / camera.fx, (v.ravel() - camera.cy) / camera.fy], 1)
-    d = camera.distort(rays)
-    mx = (d[:, 0] * camera.fx + camera.cx).reshape(camera.height, camera.width).astype(np.float32)
-    my = (d[:, 1] * camera.fy + camera.cy).reshape(camera.height, camera.width).astype(np.float32)
-    return cv2.remap(img, mx, my, cv2.INTER_LINEAR)
+    key = (camera.width, camera.height, camera.distortion_model, camera.K.tobytes(), camera.D.tobytes())
+    maps = _UNDISTORT_MAPS.get(key)
+    if maps is None:
+        v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+        rays = np.stack([(u.ravel() - camera.cx) / camera.fx, (v.ravel() - camera.cy) / camera.fy], 1)
+        d = camera.distort(rays)
+        mx = (d[:, 0] * camera.fx + camera.cx).reshape(camera.height, camera.width).astype(np.float32)
+        my = (d[:, 1] * camera.fy + camera.cy).reshape(camera.height, camera.width).astype(np.float32)
+        if len(_UNDISTORT_MAPS) >= 4:
+            _UNDISTORT_MAPS.clear()
+        maps = _UNDISTORT_MAPS[key] = (mx, my)
+    return cv2.remap(img, maps[0], maps[1], cv2.INTER_LINEAR)
 
 
 def _gray(img: np.ndarray) -> np.ndarray:
