@@ -38,7 +38,7 @@ from .objects import ObjectConfig, facade_mask, voxel_index
 
 def voxel_down(p: np.ndarray, voxel_m: float) -> np.ndarray:
     """One point (the mean) per occupied voxel, the voxels in lexicographic order of their indices."""
-    p = np.asarray(p, float)
+    p = np.asarray(p)
     inv, cnt = voxel_index(p, voxel_m)
     if cnt.size == 0:
         return np.zeros((0, 3))

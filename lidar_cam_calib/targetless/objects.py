@@ -203,7 +203,7 @@ def voxel_index(p: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
     """(each point's voxel, each voxel's point count) of ``p`` (N,3) on a ``voxel_m`` grid, the voxels in
     lexicographic order of their (x, y, z) indices, as ``np.unique(key, axis=0)`` numbers them: one integer
     key per point instead of rows, about ten times faster on a 100k-point sweep."""
-    key = np.floor(np.asarray(p, float) / voxel_m).astype(np.int64)
+    key = np.floor(np.asarray(p) / voxel_m).astype(np.int64)
     if key.shape[0] == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     key -= key.min(axis=0)
