@@ -960,7 +960,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         ground_cache: dict = {}  # sweep -> each point's distance to its ground plane
         walk_cache: dict = {}    # sweep -> points on clusters that moved (moving_clusters)
 
-        deskew_cache: dict = {}  # neighbouring sweep -> de-skewed points (the walker test's)
+        deskew_cache: dict = {}  # sweep -> de-skewed points (each sweep de-skewed once)
 
         def _deskewed(j: int) -> np.ndarray:
             if j in static_cache:
@@ -978,7 +978,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             jk = int(np.argmin(np.abs(stamps_u - t_img[k])))
             sw = sweeps[use[jk]]
             if jk not in static_cache:
-                pk = deskew_sweep(sw, link_of(jk).T, cfg) if cfg.deskew else sw.points
+                pk = _deskewed(jk)  # (a sweep the walker test de-skewed as a neighbour is not de-skewed again)
                 oth, T_oth = _neighbours(sweeps, use, poses, jk, cfg.dynamic_sweep_gap)
                 st = point_motion(sw.points, oth, T_oth) <= cfg.dynamic_dist_m if oth \
                     else np.ones(sw.points.shape[0], bool)
