@@ -653,7 +653,7 @@ def _registered_distances(regl: np.ndarray, tree, cs: np.ndarray, nrm: np.ndarra
     """Point-to-plane distances of registered LiDAR points (levelled camera-cloud frame) to the camera
     cloud ``cs``: the overlap mask and, with at least 50 points on the cloud, the partial Hausdorff
     distances overall and above the ground (None otherwise)."""
-    d, nn = tree.query(regl, k=1, distance_upper_bound=0.5)
+    d, nn = tree.query(regl, k=1, distance_upper_bound=0.5, workers=-1)
     ok = np.isfinite(d)
     if ok.sum() < 50:
         return ok, None
@@ -1140,7 +1140,7 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
 
         def above_fit(Tl):
             q = transform_points(Tl, lid_in)
-            d, nn = tree.query(q, k=1, distance_upper_bound=0.5)
+            d, nn = tree.query(q, k=1, distance_upper_bound=0.5, workers=-1)
             okq = np.isfinite(d)
             if okq.sum() < 20:
                 return np.inf
@@ -1292,8 +1292,14 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             q_cam = transform_points(T_final @ inv_T(T_sweep_img), lid[in_r])
             best_sf = (np.inf, 1.0, np.nan)
             sr = cfg.ours_hausdorff_scale_range
+            # only points within 0.5 m of the camera cloud at some scale can count: |s q - c| <= 0.5 implies
+            # |q - c| <= 0.5 + |s - 1| |q| (the same distances, from far fewer queries)
+            rq = np.linalg.norm(q_cam, axis=1)
+            d1, _ = tree.query(transform_points(Ls, q_cam), k=1, workers=-1,
+                               distance_upper_bound=0.5 + sr * float(rq.max(initial=0)))
+            q_near = q_cam[d1 <= 0.5 + sr * rq]
             for sc in np.linspace(1.0 - sr, 1.0 + sr, 2 * int(round(sr / 0.0025)) + 1):  # 0.25 % steps
-                _, dsf = _registered_distances(transform_points(Ls, q_cam * sc), tree, cs, nrm, cfg.hausdorff_quantile)
+                _, dsf = _registered_distances(transform_points(Ls, q_near * sc), tree, cs, nrm, cfg.hausdorff_quantile)
                 if dsf is not None and dsf["hausdorff_m"] < best_sf[0]:
                     best_sf = (dsf["hausdorff_m"], float(sc), dsf["hausdorff_above_ground_m"])
             metrics.update({"hausdorff_scale_free_m": best_sf[0], "hausdorff_scale_free_above_ground_m": best_sf[2],

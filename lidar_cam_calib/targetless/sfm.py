@@ -140,11 +140,12 @@ def _project(K: np.ndarray, T: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, n
     return uv, z
 
 
-def triangulate_tracks(K: np.ndarray, poses: list, obs: np.ndarray, use: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def triangulate_tracks(K: np.ndarray, poses: list, obs: np.ndarray, use: np.ndarray, checks: bool = True
+                       ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Multi-view midpoint triangulation of tracks ``obs`` (P, n, 2) over the
     views ``use`` (P, n) bool. Returns points (P,3), the largest re-projection
-    error (px, inf when behind a camera) and the largest triangulation angle (deg)."""
+    error (px, inf when behind a camera) and the largest triangulation angle (deg);
+    ``checks`` False: the points alone (None, None), for a caller that measures its own errors."""
     Kinv = np.linalg.inv(K)
     P = obs.shape[0]
     A = np.zeros((P, 3, 3))
@@ -164,6 +165,8 @@ def triangulate_tracks(K: np.ndarray, poses: list, obs: np.ndarray, use: np.ndar
         A[ok] += M
         b[ok] += M @ c
     X = np.linalg.solve(A + 1e-12 * np.eye(3), b[:, :, None])[:, :, 0]
+    if not checks:
+        return X, None, None
     err = np.zeros(P)
     rays = np.full((obs.shape[1], P, 3), np.nan)
     for k, c in cens.items():
@@ -603,8 +606,12 @@ def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray
     x0 = np.clip(np.floor(x).astype(int), 0, img.shape[1] - 2)
     y0 = np.clip(np.floor(y).astype(int), 0, img.shape[0] - 2)
     ax, ay = (x - x0)[:, None], (y - y0)[:, None]
-    v = (img[y0, x0] * (1 - ax) * (1 - ay) + img[y0, x0 + 1] * ax * (1 - ay)
-         + img[y0 + 1, x0] * (1 - ax) * ay + img[y0 + 1, x0 + 1] * ax * ay)
+    # one flat gather per corner (a 2-D fancy index over (H,W,2) is several times slower)
+    w = img.shape[1]
+    flat = img.reshape(-1, img.shape[2])
+    i = y0 * w + x0
+    v = (np.take(flat, i, axis=0) * (1 - ax) * (1 - ay) + np.take(flat, i + 1, axis=0) * ax * (1 - ay)
+         + np.take(flat, i + w, axis=0) * (1 - ax) * ay + np.take(flat, i + w + 1, axis=0) * ax * ay)
     return v[:, 0], v[:, 1]
 
 
@@ -696,7 +703,7 @@ def _densify_from(images, camera, res, masks, cfg, ref, gi, fwd, bwd):
     good = use.sum(1) >= 3
     Xd = np.full((u.size, 3), np.nan)
     for _ in range(2):
-        Xd[good], _, _ = triangulate_tracks(K, list(res.poses), obs[good], use[good])
+        Xd[good] = triangulate_tracks(K, list(res.poses), obs[good], use[good], checks=False)[0]
         for k in range(n):
             ok = good & use[:, k]
             pr, z = _project(K, res.poses[k], Xd[ok])
