@@ -134,7 +134,7 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
     for k in range(1, len(clouds)):
         tree, nrm = trees[k - 1], normals[k - 1]
         best, score = None, -1
-        starts = [vel, np.eye(4)]
+        starts = [vel, np.eye(4)] if np.any(vel != np.eye(4)) else [vel]  # (the first link: both at rest)
         Tb = _bev_start(down[k], normals[k], down[k - 1], nrm)
         if min(np.linalg.norm(Tb[:3, 3] - T0[:3, 3]) for T0 in starts) > 0.3:
             starts.append(Tb)

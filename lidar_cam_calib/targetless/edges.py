@@ -316,8 +316,8 @@ def _visible(cam: CameraModel, T: np.ndarray, edges: np.ndarray, cloud: np.ndarr
     ok &= (uv[:, 0] > margin_px) & (uv[:, 0] < cam.width - margin_px) & \
           (uv[:, 1] > margin_px) & (uv[:, 1] < cam.height - margin_px) & (q[:, 2] > 1.0)
     qc = transform_points(T, cloud)
+    qc = qc[qc[:, 2] > 0.5]  # (behind the camera: most of a spinning LiDAR's sweep, not projected)
     uvc, okc = cam.project(qc)
-    okc &= qc[:, 2] > 0.5
     gw, gh = cam.width // cell_px + 1, cam.height // cell_px + 1
     zb = np.full(gw * gh, np.inf)
     cc = (uvc[okc] / cell_px).astype(int)
@@ -325,8 +325,10 @@ def _visible(cam: CameraModel, T: np.ndarray, edges: np.ndarray, cloud: np.ndarr
     zb = zb.reshape(gh, gw)
     # a point hidden by any nearer point in its 3x3 cells
     zpad = np.pad(zb, 1, constant_values=np.inf)
-    zmin = np.min(np.stack([zpad[1 + dy:gh + 1 + dy, 1 + dx:gw + 1 + dx]
-                            for dy in (-1, 0, 1) for dx in (-1, 0, 1)]), axis=0)
+    zmin = zpad[1:gh + 1, 1:gw + 1].copy()
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            np.minimum(zmin, zpad[1 + dy:gh + 1 + dy, 1 + dx:gw + 1 + dx], out=zmin)
     ce = np.clip((uv / cell_px).astype(int), 0, [gw - 1, gh - 1]) if uv.size else np.zeros((0, 2), int)
     zcell = zmin[ce[:, 1], ce[:, 0]]
     ok &= q[:, 2] <= zcell + 0.3 + 0.05 * q[:, 2]
@@ -442,6 +444,14 @@ class EdgeView:
     kinds: np.ndarray | None = None  # (M,) 0 silhouette, 1 intensity (paint), filled by prepare_view
     dist: np.ndarray | None = None   # the image's edge-distance map, filled by prepare_view
     fields: dict = dataclasses.field(default_factory=dict, repr=False)  # filled by view_field
+    occl: np.ndarray | None = None   # every other static point (the visibility test's occluders), by occluders
+
+
+def occluders(v: EdgeView) -> np.ndarray:
+    """The view's static points, every other one: what may hide its edges (taken once per view)."""
+    if v.occl is None:
+        v.occl = v.pts[v.static][::2]
+    return v.occl
 
 
 def prepare_view(v: EdgeView, cfg: EdgeConfig) -> EdgeView:
@@ -469,7 +479,7 @@ def edge_kind_inliers(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeCon
         if v.edges.shape[0] == 0:
             continue
         Tk = X @ inv_T(v.T_sweep_img)
-        vis = _visible(cam, Tk, v.edges, v.pts[v.static][::2])
+        vis = _visible(cam, Tk, v.edges, occluders(v))
         if not vis.any():
             continue
         uv, _ = cam.project(transform_points(Tk, v.edges[vis]))
@@ -690,7 +700,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
         if E.shape[0] < cfg.view_min_points:
             continue
         Tk = X @ inv_T(v.T_sweep_img)      # camera at this exposure <- sweep
-        vis = _visible(cam, Tk, E, v.pts[v.static][::2])
+        vis = _visible(cam, Tk, E, occluders(v))
         if vis.sum() < cfg.view_min_points:
             continue
         idx = np.flatnonzero(vis)
