@@ -156,7 +156,9 @@ def test_too_few_objects_is_refused():
 
 def test_bev_translation_lists_the_peaks_of_a_repeating_street():
     """Poles every 5 m along the street: the correlation has peaks 5 m apart of nearly equal height;
-    with n_peaks the caller gets them all (the true one among them), best first, 1 m or more apart."""
+    with n_peaks the caller gets them all (the true one among them), best first, 1 m or more apart, and
+    no more: the three shifts within 7 m that lay poles on poles (the correlation counts cells, so where
+    nothing overlaps it is exactly zero, not a peak of rounding noise)."""
     from lidar_cam_calib.targetless.align import layered_bev_translation
     rng = np.random.default_rng(11)
     poles = [_cylinder(rng, (x, side * 4.0), 0.12, 4.0, 300) for x in np.arange(-25.0, 26.0, 5.0)
@@ -166,7 +168,8 @@ def test_bev_translation_lists_the_peaks_of_a_repeating_street():
     src = tgt[np.abs(tgt[:, 0]) < 12.0] - t_true  # the source sees a shorter stretch
     t, _hit, ratio, peaks = layered_bev_translation(tgt, src, 0.0, radius_m=7.0, n_peaks=5)
     assert ratio < 1.15  # no distinct peak on its own
-    assert len(peaks) == 5 and peaks[0][1] == 1.0 and all(a[1] >= b[1] for a, b in zip(peaks, peaks[1:]))
+    assert len(peaks) == 3 and peaks[0][1] == 1.0 and all(a[1] >= b[1] for a, b in zip(peaks, peaks[1:]))
+    assert min(p[1] for p in peaks) > 0.9
     assert min(np.linalg.norm(p[0] - t_true) for p in peaks) < 0.15
     assert all(np.linalg.norm(a[0] - b[0]) >= 1.0 for i, a in enumerate(peaks) for b in peaks[i + 1:])
     assert np.allclose(peaks[0][0], t)

@@ -314,8 +314,12 @@ def layered_bev_translation(target: np.ndarray, source: np.ndarray, yaw: float, 
     tot = float(G_s.sum())
     if tot < 20:
         raise CalibError("translation search: fewer than 20 occupied cells above the ground in the camera cloud")
-    F = np.fft.rfft2(G_t, s=(2 * n, 2 * n)) * np.conj(np.fft.rfft2(G_s, s=(2 * n, 2 * n)))
-    corr = np.fft.irfft2(F.sum(axis=0), s=(2 * n, 2 * n))
+    # scipy's FFT on both cores (numpy's float32 rfft2 is ten times slower); the correlation of occupancy
+    # grids counts cells, an integer: rounded, equal scores are equal and the first peak wins
+    import scipy.fft
+    F = scipy.fft.rfft2(G_t, s=(2 * n, 2 * n), workers=-1) * np.conj(scipy.fft.rfft2(G_s, s=(2 * n, 2 * n),
+                                                                                      workers=-1))
+    corr = np.rint(scipy.fft.irfft2(F.sum(axis=0), s=(2 * n, 2 * n), workers=-1))
     r = int(np.ceil(radius_m / cell_m))
     c0 = np.zeros(2) if centre is None else np.asarray(centre, float)[:2]
     ci, cj = (int(round(c0[0] / cell_m)), int(round(c0[1] / cell_m)))
