@@ -99,7 +99,8 @@ def _link_fit(src: np.ndarray, tgt: np.ndarray, tree: cKDTree, nrm: np.ndarray, 
 
 
 def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0, iterations: int = 20,
-                   min_dist_m: float = 0.3, raw_points: int = 0, inlier_m: float = 0.1) -> tuple[np.ndarray, list]:
+                   min_dist_m: float = 0.3, raw_points: int = 0, inlier_m: float = 0.1, steady_m: float = 0.1,
+                   steady_score: float = 0.9) -> tuple[np.ndarray, list]:
     """Poses (K,4,4) ``T_first_k`` of every sweep and the per-link ICP results.
 
     Each link is fitted from the constant-velocity start, from rest and from the horizontal shift that
@@ -107,7 +108,10 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
     a forward pass) from both neighbouring links' results; the fit with the most source points within
     ``inlier_m`` of the target's upright surfaces is kept. At speed (1-2 m per sweep) the first link, which has no
     velocity to start from, otherwise stops in the street's along-track valley near rest and every later
-    pose, the metric scale and the de-skew inherit it.
+    pose, the metric scale and the de-skew inherit it. A link whose constant-velocity fit stayed within
+    ``steady_m`` of the previous link's motion and scores at least ``steady_score`` times its inliers is
+    kept without the other starts (a car does not change its motion by 10 cm in one sweep; at slow speed
+    the start from rest only found the same fit again, at twice the cost).
 
     ``raw_points > 0``: no voxel means (a fixed voxel grid in each sweep's own frame aliases the moving
     ring pattern and biases the travelled distance by up to ~1 %); the target is the raw sweep and the
@@ -133,15 +137,20 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
     vel = np.eye(4)
     for k in range(1, len(clouds)):
         tree, nrm = trees[k - 1], normals[k - 1]
-        best, score = None, -1
-        starts = [vel, np.eye(4)] if np.any(vel != np.eye(4)) else [vel]  # (the first link: both at rest)
-        Tb = _bev_start(down[k], normals[k], down[k - 1], nrm)
-        if min(np.linalg.norm(Tb[:3, 3] - T0[:3, 3]) for T0 in starts) > 0.3:
-            starts.append(Tb)
-        for T0 in starts:
-            r, sc = _link_fit(subs[k], down[k - 1], tree, nrm, T0, cfg, inlier_m)
-            if sc > score:
-                best, score = r, sc
+        best, score = _link_fit(subs[k], down[k - 1], tree, nrm, vel, cfg, inlier_m)
+        # a car's motion changes little in one sweep: a fit that stayed within steady_m of the previous
+        # link's motion and meets the surfaces as well as it did needs no other start
+        steady = (k >= 2 and best is not None and np.linalg.norm(best.T[:3, 3] - vel[:3, 3]) < steady_m
+                  and score >= steady_score * scores[-1])
+        if not steady:
+            starts = [np.eye(4)] if np.any(vel != np.eye(4)) else []  # (the first link starts at rest)
+            Tb = _bev_start(down[k], normals[k], down[k - 1], nrm)
+            if min(np.linalg.norm(Tb[:3, 3] - T0[:3, 3]) for T0 in starts + [vel]) > 0.3:
+                starts.append(Tb)
+            for T0 in starts:
+                r, sc = _link_fit(subs[k], down[k - 1], tree, nrm, T0, cfg, inlier_m)
+                if sc > score:
+                    best, score = r, sc
         if best is None:
             raise CalibError(f"LiDAR odometry failed between sweeps {k - 1} and {k}: the scans do not overlap")
         links.append(best)
