@@ -101,6 +101,7 @@ class SfmResult:
     unit_m: float = 1.0
     dense: np.ndarray | None = None
     dense_colour: np.ndarray | None = None
+    grays: list | None = dataclasses.field(default=None, repr=False)  # the ideal grey images (densify)
 
     def centres(self) -> np.ndarray:
         return np.array([inv_T(T)[:3, 3] for T in self.poses])
@@ -533,7 +534,7 @@ def run_sfm(images: list, camera: CameraModel, masks: list | None = None, ref: i
     T1 = make_T(cv2.Rodrigues(rv)[0], tv.ravel()) if ok else np.eye(4)
     pr, _ = _project(K, T1, p3)
     t1_err = float(np.mean(np.linalg.norm(pr - p2, axis=1)))
-    return SfmResult(np.array(poses), Xw, trk, float(np.mean(res)), ref, T1, t1_err, int(res.size))
+    return SfmResult(np.array(poses), Xw, trk, float(np.mean(res)), ref, T1, t1_err, int(res.size), grays=grays)
 
 
 def klt_tracks(grays: list, masks: list | None, cfg: SfmConfig) -> list:
@@ -631,7 +632,8 @@ def densify(images: list, camera: CameraModel, res: SfmResult, masks: list | Non
     frame in ``refs`` (default all) (see the module docstring for why not rectified stereo)."""
     import cv2
     cfg = cfg or SfmConfig()
-    gi = [_gray(ideal_image(im, camera)) for im in images]
+    gi = res.grays if res.grays is not None and len(res.grays) == len(images) else \
+        [_gray(ideal_image(im, camera)) for im in images]
     H, W = gi[0].shape
     n = len(images)
     dis = cv2.DISOpticalFlow_create({"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
