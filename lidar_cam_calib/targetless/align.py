@@ -354,13 +354,15 @@ def wahba(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def icp_translation(cam: np.ndarray, cam_normals: np.ndarray, lidar_rot: np.ndarray, t0: np.ndarray,
-                    cfg: AlignConfig | None = None, cam_weights: np.ndarray | None = None) -> IcpResult:
+                    cfg: AlignConfig | None = None, cam_weights: np.ndarray | None = None,
+                    info_scale: float = 1.0) -> IcpResult:
     """Translation-only point-to-plane ICP with the camera cloud as the *source*: ``cam ~ lidar_rot + t``
     (``lidar_rot``: the LiDAR cloud already rotated into the camera's levelled frame). Each camera point
     is matched to its nearest LiDAR point and the residual is measured along the camera point's own
     normal. The camera cloud covers only part of each surface: with it as the target, LiDAR points past
     the edge of a camera patch pull towards the edge and bias the translation along the street by
-    5-10 cm; with it as the source every residual has a real counterpart. ``H`` is 3x3."""
+    5-10 cm; with it as the source every residual has a real counterpart. ``H`` is 3x3, multiplied by
+    ``info_scale`` (a caller that passes a subset: the information of the cloud it stands for)."""
     cfg = cfg or AlignConfig()
     tree = cKDTree(lidar_rot)
     t = np.asarray(t0, float).copy()
@@ -388,4 +390,4 @@ def icp_translation(cam: np.ndarray, cam_normals: np.ndarray, lidar_rot: np.ndar
             break
         if it % 5 == 4:
             dmax = max(cfg.icp_min_dist_m, dmax * 0.5)
-    return IcpResult(make_T(np.eye(3), t), 1.0, rms, ncorr, H, sig)
+    return IcpResult(make_T(np.eye(3), t), 1.0, rms, ncorr, H * info_scale, sig)
