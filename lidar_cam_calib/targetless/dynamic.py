@@ -143,7 +143,7 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
         steady = (k >= 2 and best is not None and np.linalg.norm(best.T[:3, 3] - vel[:3, 3]) < steady_m
                   and score >= steady_score * scores[-1])
         if not steady:
-            starts = [np.eye(4)] if np.any(vel != np.eye(4)) else []  # (the first link starts at rest)
+            starts = [np.eye(4)] if k >= 2 else []  # (the first link's velocity start is rest)
             Tb = _bev_start(down[k], normals[k], down[k - 1], nrm)
             if min(np.linalg.norm(Tb[:3, 3] - T0[:3, 3]) for T0 in starts + [vel]) > 0.3:
                 starts.append(Tb)
