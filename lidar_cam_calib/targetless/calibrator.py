@@ -73,7 +73,7 @@ from ..core.result import CalibrationResult
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
-from .edges import (EdgeConfig, EdgeView, azimuth_step_rad, edge_kind_inliers, of_kind, refine_pose,
+from .edges import (EdgeConfig, EdgeView, azimuth_step_rad, edge_kind_inliers, of_kind, prepare_view, refine_pose,
                     refine_translation, ring_spacing_deg, without_paint, yaw_about_edges)
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, moving_clusters, point_motion,
                       voxel_down)
@@ -895,122 +895,142 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     cam = images[0].camera
     ims = [f.image for f in images]
     masks = [f.mask for f in images] if any(f.mask is not None for f in images) else None
-    # -- SfM
-    # ours: SIFT on every frame pair, widest initial pair, stricter ratio test, plus sub-pixel KLT tracks
-    # (forward motion leaves the translation direction weakly determined: the bas-relief ambiguity; more
-    # and longer precise tracks narrow it)
-    sfm_cfg = cfg.ours_sfm if ours else cfg.sfm
-    key = "sfm_ours" if ours else "sfm"
-    if key not in cache:
-        sfm0 = run_sfm(ims, cam, masks, ref=0, cfg=sfm_cfg)
-        step = max(1, len(ims) // cfg.dense_refs)
-        refs = list(range(0, len(ims), step))[:cfg.dense_refs]
-        dense0 = densify(ims, cam, sfm0, masks, sfm_cfg, refs=refs)[0] \
-            if sfm0.reprojection_px <= cfg.max_sfm_reprojection_px else None
-        cache[key] = (sfm0, dense0)
+    # -- the LiDAR side (odometry, de-skew, the moving points, the edge views) does not need the SfM: it runs
+    # in a second thread while the SfM runs (the SfM's numpy stages use one core; OpenCV, the kd-tree
+    # queries and numpy's array work release the GIL). The same results: no random state is shared (the
+    # SfM's FLANN draws from OpenCV's RNG, which is per thread)
+    def lidar_side() -> dict:
+        # -- LiDAR odometry
+        t1 = time.perf_counter()
+        t_img = np.array([f.stamp_s - cfg.time_offset_s for f in images])
+        stamps = np.array([s.stamp_s for s in sweeps])
+        lo = max(0, int(np.searchsorted(stamps, t_img[0])) - 1 - cfg.dynamic_sweep_gap)
+        hi = min(len(sweeps), int(np.searchsorted(stamps, t_img[-1])) + 1)
+        use = list(range(lo, hi))
+        if len(use) < 2:
+            raise CalibError("not enough LiDAR sweeps around the kept images")
+        if "odometry" not in cache:
+            cache["odometry"] = lidar_odometry([sweeps[i].points for i in use])
+        poses, links = cache["odometry"]
+        stamps_u = stamps[use]
+        P_img = np.array([interpolate_pose(stamps_u, poses, t) for t in t_img])
+        tm["odometry"] = time.perf_counter() - t1
+        # reference sweep: nearest to the first image; de-skewed to its stamp
+        jr = int(np.argmin(np.abs(stamps_u - t_img[0])))
+        ref_sweep = sweeps[use[jr]]
+        def link_of(j):  # the odometry link that ends at sweep j (the first one for sweep 0)
+            return links[j - 1] if j > 0 else links[0]
+        link = link_of(jr)
+        lid = deskew_sweep(ref_sweep, link.T, cfg) if cfg.deskew else ref_sweep.points
+        # LiDAR pose at the reference exposure, relative to the reference sweep stamp
+        T_sweep_img = inv_T(poses[jr]) @ P_img[0]
+        ja = max(jr, 1)
+        speed = float(np.linalg.norm(link.T[:3, 3]) / max(stamps_u[ja] - stamps_u[ja - 1], 1e-3))
+        # -- dynamic objects (motion consistency with sweeps gap apart)
+        others, T_others = _neighbours(sweeps, use, poses, jr, cfg.dynamic_sweep_gap)
+        # per point: how far it moved between the compensated sweeps (objects and the edge views use it)
+        motion = point_motion(ref_sweep.points, others, T_others) if others else np.zeros(lid.shape[0])
+        # -- edge views (ours): each image with the sweep nearest its exposure, de-skewed, its moving points
+        # marked; they rank the coarse translations and refine the extrinsic
+        views = []
+        min_inliers = cfg.ours_min_edge_inliers
+        metrics_step = {}
+        t_views = time.perf_counter()
+        if ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "pose":
+            # an edge point is measured up to one column step from the true edge: with a step wider than the
+            # one the inlier share was set on, fewer correct points are within 1.5 px; ask for that many less
+            step = azimuth_step_rad(ref_sweep.points)
+            step_px = float(cam.K[0, 0]) * step
+            min_inliers = edge_inliers_needed(cfg, step_px)
+            metrics_step = {"lidar_azimuth_step_deg": math.degrees(step), "edge_step_px": step_px,
+                            "edge_inliers_needed": min_inliers}
+            static_cache: dict = {jr: (lid, motion <= cfg.dynamic_dist_m)}  # sweep -> (de-skewed, static)
+            ground_cache: dict = {}  # sweep -> each point's distance to its ground plane
+            walk_cache: dict = {}    # sweep -> points on clusters that moved (moving_clusters)
+
+            deskew_cache: dict = {}  # sweep -> de-skewed points (each sweep de-skewed once)
+
+            def _deskewed(j: int) -> np.ndarray:
+                if j in static_cache:
+                    return static_cache[j][0]
+                if j not in deskew_cache:
+                    sj = sweeps[use[j]]
+                    deskew_cache[j] = deskew_sweep(sj, link_of(j).T, cfg) if cfg.deskew else sj.points
+                return deskew_cache[j]
+
+            def _ground_of(j: int) -> np.ndarray:
+                if j not in ground_cache:
+                    ground_cache[j] = ground_distance(sweeps[use[j]].points, j)
+                return ground_cache[j]
+            for k in range(min(cfg.ours_edge_images, len(images))):
+                jk = int(np.argmin(np.abs(stamps_u - t_img[k])))
+                sw = sweeps[use[jk]]
+                if jk not in static_cache:
+                    pk = _deskewed(jk)  # (a sweep the walker test de-skewed as a neighbour is not de-skewed again)
+                    oth, T_oth = _neighbours(sweeps, use, poses, jk, cfg.dynamic_sweep_gap)
+                    st = point_motion(sw.points, oth, T_oth) <= cfg.dynamic_dist_m if oth \
+                        else np.ones(sw.points.shape[0], bool)
+                    static_cache[jk] = (pk, st)
+                pk, st = static_cache[jk]
+                gd = _ground_of(jk)
+                if cfg.dynamic_cluster_speed_mps > 0:
+                    if jk not in walk_cache:  # people walking: whole clusters that moved (the point test misses them)
+                        walk_cache[jk] = np.zeros(sw.points.shape[0], bool)
+                        for gap in range(cfg.dynamic_sweep_gap, 0, -1):  # the widest gap the car's move allows
+                            nb = [jk + dj for dj in (-gap, gap) if 0 <= jk + dj < len(use)]
+                            T_nb = [inv_T(poses[jk]) @ poses[i] for i in nb]
+                            if nb and max(np.linalg.norm(T[:3, 3]) for T in T_nb) <= cfg.dynamic_cluster_max_move_m:
+                                break
+                        else:
+                            nb = []
+                        if nb:
+                            walk_cache[jk] = moving_clusters(
+                                pk, gd > cfg.ground_static_m, [_deskewed(i) for i in nb],
+                                [_ground_of(i) > cfg.ground_static_m for i in nb], T_nb,
+                                [float(stamps_u[i] - stamps_u[jk]) for i in nb],
+                                speed_mps=cfg.dynamic_cluster_speed_mps, max_range_m=cfg.edges.max_range_m + 5.0)
+                    st = st & ~walk_cache[jk]
+                views.append(EdgeView(ims[k], sw.points, pk, sw.intensity, st | (gd <= cfg.ground_static_m),
+                                      inv_T(poses[jk]) @ P_img[k], ring=sw.ring,
+                                      ground=gd <= cfg.edges.paint_ground_m if cfg.edges.paint_ground_m > 0 else None))
+        for v in views:  # each view's LiDAR edges and image edge-distance map (computed once, on first use)
+            prepare_view(v, cfg.edges)
+        tm["edge_views"] = time.perf_counter() - t_views
+        return {"poses": poses, "P_img": P_img, "jr": jr, "ref_sweep": ref_sweep, "link": link, "lid": lid,
+                "T_sweep_img": T_sweep_img, "speed": speed, "others": others, "motion": motion, "views": views,
+                "min_inliers": min_inliers, "metrics_step": metrics_step}
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(max_workers=1) as pool:  # (leaving the block waits for the thread)
+        side = pool.submit(lidar_side)
+        # -- SfM
+        # ours: SIFT on every frame pair, widest initial pair, stricter ratio test, plus sub-pixel KLT tracks
+        # (forward motion leaves the translation direction weakly determined: the bas-relief ambiguity; more
+        # and longer precise tracks narrow it)
+        sfm_cfg = cfg.ours_sfm if ours else cfg.sfm
+        key = "sfm_ours" if ours else "sfm"
+        if key not in cache:
+            sfm0 = run_sfm(ims, cam, masks, ref=0, cfg=sfm_cfg)
+            step = max(1, len(ims) // cfg.dense_refs)
+            refs = list(range(0, len(ims), step))[:cfg.dense_refs]
+            dense0 = densify(ims, cam, sfm0, masks, sfm_cfg, refs=refs)[0] \
+                if sfm0.reprojection_px <= cfg.max_sfm_reprojection_px else None
+            cache[key] = (sfm0, dense0)
     sfm, dense = cache[key]
     if sfm.reprojection_px > cfg.max_sfm_reprojection_px:
         raise CalibError(f"gate failed: SfM re-projection error {sfm.reprojection_px:.2f} px > "
                          f"{cfg.max_sfm_reprojection_px:.2f} px; calibration rejected (try another stretch)")
     tm["sfm"] = time.perf_counter() - t0
-    # -- LiDAR odometry and metric scale
-    t1 = time.perf_counter()
-    t_img = np.array([f.stamp_s - cfg.time_offset_s for f in images])
-    stamps = np.array([s.stamp_s for s in sweeps])
-    lo = max(0, int(np.searchsorted(stamps, t_img[0])) - 1 - cfg.dynamic_sweep_gap)
-    hi = min(len(sweeps), int(np.searchsorted(stamps, t_img[-1])) + 1)
-    use = list(range(lo, hi))
-    if len(use) < 2:
-        raise CalibError("not enough LiDAR sweeps around the kept images")
-    if "odometry" not in cache:
-        cache["odometry"] = lidar_odometry([sweeps[i].points for i in use])
-    poses, links = cache["odometry"]
-    stamps_u = stamps[use]
-    P_img = np.array([interpolate_pose(stamps_u, poses, t) for t in t_img])
+    t_wait = time.perf_counter()
+    L = side.result()  # (raises what the LiDAR side raised)
+    tm["lidar_wait"] = time.perf_counter() - t_wait
+    poses, P_img, jr, ref_sweep, link, lid = L["poses"], L["P_img"], L["jr"], L["ref_sweep"], L["link"], L["lid"]
+    T_sweep_img, speed, others, motion, views = L["T_sweep_img"], L["speed"], L["others"], L["motion"], L["views"]
+    min_inliers, metrics_step = L["min_inliers"], L["metrics_step"]
+    # -- metric scale: the SfM camera centres against the LiDAR odometry at the exposures
     scale, scale_rel = metric_scale(sfm.centres(), P_img[:, :3, 3])
     sfm = apply_scale(sfm, scale)
     dense = dense * scale
-    tm["odometry"] = time.perf_counter() - t1
-    # reference sweep: nearest to the first image; de-skewed to its stamp
     t2 = time.perf_counter()
-    jr = int(np.argmin(np.abs(stamps_u - t_img[0])))
-    ref_sweep = sweeps[use[jr]]
-    def link_of(j):  # the odometry link that ends at sweep j (the first one for sweep 0)
-        return links[j - 1] if j > 0 else links[0]
-    link = link_of(jr)
-    lid = deskew_sweep(ref_sweep, link.T, cfg) if cfg.deskew else ref_sweep.points
-    # LiDAR pose at the reference exposure, relative to the reference sweep stamp
-    T_sweep_img = inv_T(poses[jr]) @ P_img[0]
-    ja = max(jr, 1)
-    speed = float(np.linalg.norm(link.T[:3, 3]) / max(stamps_u[ja] - stamps_u[ja - 1], 1e-3))
-    # -- dynamic objects (motion consistency with sweeps gap apart)
-    others, T_others = _neighbours(sweeps, use, poses, jr, cfg.dynamic_sweep_gap)
-    # per point: how far it moved between the compensated sweeps (objects and the edge views use it)
-    motion = point_motion(ref_sweep.points, others, T_others) if others else np.zeros(lid.shape[0])
-    # -- edge views (ours): each image with the sweep nearest its exposure, de-skewed, its moving points
-    # marked; they rank the coarse translations and refine the extrinsic
-    views = []
-    min_inliers = cfg.ours_min_edge_inliers
-    metrics_step = {}
-    t_views = time.perf_counter()
-    if ours and cfg.ours_edge_refine and cfg.ours_edge_mode == "pose":
-        # an edge point is measured up to one column step from the true edge: with a step wider than the
-        # one the inlier share was set on, fewer correct points are within 1.5 px; ask for that many less
-        step = azimuth_step_rad(ref_sweep.points)
-        step_px = float(cam.K[0, 0]) * step
-        min_inliers = edge_inliers_needed(cfg, step_px)
-        metrics_step = {"lidar_azimuth_step_deg": math.degrees(step), "edge_step_px": step_px,
-                        "edge_inliers_needed": min_inliers}
-        static_cache: dict = {jr: (lid, motion <= cfg.dynamic_dist_m)}  # sweep -> (de-skewed, static)
-        ground_cache: dict = {}  # sweep -> each point's distance to its ground plane
-        walk_cache: dict = {}    # sweep -> points on clusters that moved (moving_clusters)
-
-        deskew_cache: dict = {}  # sweep -> de-skewed points (each sweep de-skewed once)
-
-        def _deskewed(j: int) -> np.ndarray:
-            if j in static_cache:
-                return static_cache[j][0]
-            if j not in deskew_cache:
-                sj = sweeps[use[j]]
-                deskew_cache[j] = deskew_sweep(sj, link_of(j).T, cfg) if cfg.deskew else sj.points
-            return deskew_cache[j]
-
-        def _ground_of(j: int) -> np.ndarray:
-            if j not in ground_cache:
-                ground_cache[j] = ground_distance(sweeps[use[j]].points, j)
-            return ground_cache[j]
-        for k in range(min(cfg.ours_edge_images, len(images))):
-            jk = int(np.argmin(np.abs(stamps_u - t_img[k])))
-            sw = sweeps[use[jk]]
-            if jk not in static_cache:
-                pk = _deskewed(jk)  # (a sweep the walker test de-skewed as a neighbour is not de-skewed again)
-                oth, T_oth = _neighbours(sweeps, use, poses, jk, cfg.dynamic_sweep_gap)
-                st = point_motion(sw.points, oth, T_oth) <= cfg.dynamic_dist_m if oth \
-                    else np.ones(sw.points.shape[0], bool)
-                static_cache[jk] = (pk, st)
-            pk, st = static_cache[jk]
-            gd = _ground_of(jk)
-            if cfg.dynamic_cluster_speed_mps > 0:
-                if jk not in walk_cache:  # people walking: whole clusters that moved (the point test misses them)
-                    walk_cache[jk] = np.zeros(sw.points.shape[0], bool)
-                    for gap in range(cfg.dynamic_sweep_gap, 0, -1):  # the widest gap the car's move allows
-                        nb = [jk + dj for dj in (-gap, gap) if 0 <= jk + dj < len(use)]
-                        T_nb = [inv_T(poses[jk]) @ poses[i] for i in nb]
-                        if nb and max(np.linalg.norm(T[:3, 3]) for T in T_nb) <= cfg.dynamic_cluster_max_move_m:
-                            break
-                    else:
-                        nb = []
-                    if nb:
-                        walk_cache[jk] = moving_clusters(
-                            pk, gd > cfg.ground_static_m, [_deskewed(i) for i in nb],
-                            [_ground_of(i) > cfg.ground_static_m for i in nb], T_nb,
-                            [float(stamps_u[i] - stamps_u[jk]) for i in nb], speed_mps=cfg.dynamic_cluster_speed_mps,
-                            max_range_m=cfg.edges.max_range_m + 5.0)
-                st = st & ~walk_cache[jk]
-            views.append(EdgeView(ims[k], sw.points, pk, sw.intensity, st | (gd <= cfg.ground_static_m),
-                                  inv_T(poses[jk]) @ P_img[k], ring=sw.ring,
-                                  ground=gd <= cfg.edges.paint_ground_m if cfg.edges.paint_ground_m > 0 else None))
-    tm["edge_views"] = time.perf_counter() - t_views
     # -- camera cloud: only points whose triangulation is precise (forward motion: far points ahead have
     # tiny parallax and metre-level depth errors); sigma from the SfM's own re-projection error
     cloud_all = np.concatenate([dense, sfm.points])
