@@ -1015,14 +1015,14 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
             dense0 = densify(ims, cam, sfm0, masks, sfm_cfg, refs=refs)[0] \
                 if sfm0.reprojection_px <= cfg.max_sfm_reprojection_px else None
             cache[key] = (sfm0, dense0)
+        t_sfm = time.perf_counter()
+    tm["sfm"] = t_sfm - t0
+    tm["lidar_wait"] = time.perf_counter() - t_sfm  # (after the SfM, until the LiDAR side was done)
     sfm, dense = cache[key]
     if sfm.reprojection_px > cfg.max_sfm_reprojection_px:
         raise CalibError(f"gate failed: SfM re-projection error {sfm.reprojection_px:.2f} px > "
                          f"{cfg.max_sfm_reprojection_px:.2f} px; calibration rejected (try another stretch)")
-    tm["sfm"] = time.perf_counter() - t0
-    t_wait = time.perf_counter()
     L = side.result()  # (raises what the LiDAR side raised)
-    tm["lidar_wait"] = time.perf_counter() - t_wait
     poses, P_img, jr, ref_sweep, link, lid = L["poses"], L["P_img"], L["jr"], L["ref_sweep"], L["link"], L["lid"]
     T_sweep_img, speed, others, motion, views = L["T_sweep_img"], L["speed"], L["others"], L["motion"], L["views"]
     min_inliers, metrics_step = L["min_inliers"], L["metrics_step"]
