@@ -12,7 +12,8 @@ from lidar_cam_calib.core.camera import CameraModel
 from lidar_cam_calib.core.errors import ConfigError, InputError, NotReadyError
 from lidar_cam_calib.core.geometry import make_T
 from lidar_cam_calib.targetless.align import rz
-from lidar_cam_calib.targetless.calibrator import TargetlessCalibrator, TargetlessConfig, deskew_sweep
+from lidar_cam_calib.targetless.calibrator import (TargetlessCalibrator, TargetlessConfig, calibrate_window,
+                                                   deskew_sweep)
 from lidar_cam_calib.targetless.dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale,
                                                 point_motion)
 from lidar_cam_calib.targetless.frame import CameraFrame, LidarSweep
@@ -248,6 +249,10 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     parts = [m[f"time_edge_{k}_s"] for k in ("first_fit", "restarts", "basins", "jackknife", "kind")]
     assert all(s >= 0 for s in parts) and sum(parts) <= m["time_edges_s"] + 1e-6 and m["time_edge_views_s"] > 0
     assert len(cal.windows) == 1 and cal.last_fused.used == [0]
+    # the LiDAR side runs in a second thread beside the SfM: what it raises reaches the caller once the SfM is
+    # done (one sweep: no odometry)
+    with pytest.raises(CalibError, match="not enough LiDAR sweeps around the kept images"):
+        calibrate_window(cal.images, cal.sweeps[:1], cfg)
     # the same window with a stricter edge gate and one coarse candidate (the highest bird's-eye peak, as the
     # config documents; it used to fail unpacking the peak search's result): no ranking, refused with the
     # reason, and the accepted window stays
