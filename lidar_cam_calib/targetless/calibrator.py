@@ -61,6 +61,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -896,9 +897,10 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     ims = [f.image for f in images]
     masks = [f.mask for f in images] if any(f.mask is not None for f in images) else None
     # -- the LiDAR side (odometry, de-skew, the moving points, the edge views) does not need the SfM: it runs
-    # in a second thread while the SfM runs (the SfM's numpy stages use one core; OpenCV, the kd-tree
-    # queries and numpy's array work release the GIL). The same results: no random state is shared (the
-    # SfM's FLANN draws from OpenCV's RNG, which is per thread)
+    # in a second thread while the SfM runs (OpenCV, the kd-tree queries and numpy's array work release the
+    # GIL; the SfM keeps both cores busy most of the time, so this gains 0.1-1.5 s a window, not the LiDAR
+    # side's whole time). The same results: no random state is shared (the SfM's FLANN draws from OpenCV's
+    # RNG, which is per thread)
     def lidar_side() -> dict:
         # -- LiDAR odometry
         t1 = time.perf_counter()
@@ -999,7 +1001,6 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
         return {"poses": poses, "P_img": P_img, "jr": jr, "ref_sweep": ref_sweep, "link": link, "lid": lid,
                 "T_sweep_img": T_sweep_img, "speed": speed, "others": others, "motion": motion, "views": views,
                 "min_inliers": min_inliers, "metrics_step": metrics_step}
-    from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(max_workers=1) as pool:  # (leaving the block waits for the thread)
         side = pool.submit(lidar_side)
         # -- SfM
