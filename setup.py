@@ -46,6 +46,8 @@ setup(
         "pyyaml>=6",
         "rosbags>=0.10",
         "mcap>=1.1",
+        # one BLAS thread during a calibration (lidar_cam_calib/core/threads.py); optional at import
+        "threadpoolctl>=3",
     ],
     zip_safe=False,
     maintainer="lidar_cam_calib developers",

@@ -71,6 +71,7 @@ from ..core.errors import CalibError, NotReadyError
 from ..core.fusion import fuse_estimates
 from ..core.geometry import inv_T, make_T, skew, so3_exp, so3_log, spin_time_s, transform_points
 from ..core.result import CalibrationResult
+from ..core.threads import one_blas_thread
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
@@ -885,7 +886,15 @@ def calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig,
     """(T_camera_lidar, covariance 6x6, metrics) from one window of kept images
     and the sweeps around them. Raises :class:`CalibError` (gate or failure).
     ``cache``: a dict shared between calls on the same window (the bench runs
-    several solvers on one SfM and one odometry)."""
+    several solvers on one SfM and one odometry). BLAS runs on one thread meanwhile
+    (:func:`~lidar_cam_calib.core.threads.one_blas_thread`: its spinning threads
+    would take the core the LiDAR side and OpenCV work on)."""
+    with one_blas_thread():
+        return _calibrate_window(images, sweeps, cfg, diag, cache)
+
+
+def _calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig, diag: WindowDiagnostics | None,
+                      cache: dict | None) -> tuple[np.ndarray, np.ndarray, dict]:
     cache = {} if cache is None else cache
     diag = diag or WindowDiagnostics()
     solver = cfg.solver
