@@ -308,6 +308,27 @@ def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return out if chan else out[:, 0]
 
 
+def _sample_split(imgs: list, uv: np.ndarray, cuts: np.ndarray) -> np.ndarray:
+    """:func:`_sample` of each image of ``imgs`` (all the same shape) at its own run of ``uv`` (``uv`` cut at
+    ``cuts``), concatenated: the same values, with the clamping and the weights computed once for all
+    images (the refinement samples 8 images per evaluation; 4 gathers each remain)."""
+    h, w = imgs[0].shape[:2]
+    chan = imgs[0].ndim > 2
+    x = np.clip(uv[:, 0], 0, w - 1.001)
+    y = np.clip(uv[:, 1], 0, h - 1.001)
+    x0, y0 = x.astype(np.intp), y.astype(np.intp)
+    fx, fy = x - x0, y - y0
+    flats = [f.reshape(-1, f.shape[-1] if chan else 1) for f in imgs]
+    runs = np.split(y0 * w + x0, cuts)
+    a, b = (1 - fx) * (1 - fy), fx * (1 - fy)
+    c, d = (1 - fx) * fy, fx * fy
+
+    def corner(o):
+        return np.concatenate([np.take(f, i + o, axis=0) for f, i in zip(flats, runs)])
+    out = corner(0) * a[:, None] + corner(1) * b[:, None] + corner(w) * c[:, None] + corner(w + 1) * d[:, None]
+    return out if chan else out[:, 0]
+
+
 def _visible(cam: CameraModel, T: np.ndarray, edges: np.ndarray, cloud: np.ndarray, cell_px: int = 4,
              margin_px: float = 8.0) -> np.ndarray:
     """Edge points inside the image (with a margin) and not hidden behind other LiDAR points."""
@@ -721,6 +742,8 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
 
     def sample(fld: list, uv: np.ndarray) -> np.ndarray:
         """The views' points each sampled in its own image's field: (N,3) field, gx, gy, or (N,)."""
+        if all(f.shape == fld[0].shape for f in fld):
+            return _sample_split(fld, uv, cuts)
         return np.concatenate([_sample(f, p) for f, p in zip(fld, np.split(uv, cuts))])
 
     def per_view(rJ):
