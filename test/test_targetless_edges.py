@@ -581,3 +581,27 @@ def test_kind_check_sees_one_kind_of_edge_part_from_the_other():
     for v in views:
         v.kinds[:] = 0
     assert _kind_fits(views, cam, pe, (None, up), cfg, X) == (None, {})
+
+
+def test_bilinear_sampling_of_one_and_of_several_images():
+    """_sample is exact on a linear field inside the image and clamps outside it; _sample_split samples each
+    image at its own run of points (runs may be empty) with the same values as _sample image by image."""
+    from lidar_cam_calib.targetless.edges import _sample, _sample_split
+    h, w = 40, 60
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    imgs = [np.stack([k + 2 * xx + 3 * yy, k - xx], axis=2).astype(np.float32) for k in range(3)]
+    rng = np.random.default_rng(3)
+    uv = np.column_stack([rng.uniform(0, w - 1.01, 50), rng.uniform(0, h - 1.01, 50)])
+    got = _sample(imgs[1], uv)
+    assert got.shape == (50, 2)
+    assert np.allclose(got[:, 0], 1 + 2 * uv[:, 0] + 3 * uv[:, 1], atol=1e-4)
+    assert np.allclose(got[:, 1], 1 - uv[:, 0], atol=1e-4)
+    # outside the image: the border's value
+    out = _sample(imgs[0][:, :, 0], np.array([[-5.0, 10.0], [w + 7.0, -3.0]]))
+    assert np.allclose(out, [0 + 3 * 10.0, 2 * (w - 1.001)], atol=1e-3)
+    cuts = np.array([20, 20])  # the second image gets no point
+    split = _sample_split(imgs, uv, cuts)
+    per = np.concatenate([_sample(f, p) for f, p in zip(imgs, np.split(uv, cuts))])
+    assert np.array_equal(split, per)
+    assert np.allclose(split[:20, 0] - 0, 2 * uv[:20, 0] + 3 * uv[:20, 1], atol=1e-4)
+    assert np.allclose(split[20:, 0] - 2, 2 * uv[20:, 0] + 3 * uv[20:, 1], atol=1e-4)

@@ -293,25 +293,13 @@ def image_distance(image: np.ndarray, cfg: EdgeConfig) -> np.ndarray:
 def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear sample of ``img`` (H,W) or (H,W,C) at (N,2) pixels (clamped inside the image): (N,) or
     (N,C). One gather per corner, however many channels."""
-    h, w = img.shape[:2]
-    chan = img.ndim > 2
-    x = np.clip(uv[:, 0], 0, w - 1.001)
-    y = np.clip(uv[:, 1], 0, h - 1.001)
-    x0, y0 = x.astype(np.intp), y.astype(np.intp)
-    fx, fy = x - x0, y - y0
-    flat = img.reshape(-1, img.shape[-1] if chan else 1)
-    i = y0 * w + x0
-    a, b = (1 - fx) * (1 - fy), fx * (1 - fy)
-    c, d = (1 - fx) * fy, fx * fy
-    out = (np.take(flat, i, axis=0) * a[:, None] + np.take(flat, i + 1, axis=0) * b[:, None]
-           + np.take(flat, i + w, axis=0) * c[:, None] + np.take(flat, i + w + 1, axis=0) * d[:, None])
-    return out if chan else out[:, 0]
+    return _sample_split([img], uv, np.zeros(0, np.intp))
 
 
 def _sample_split(imgs: list, uv: np.ndarray, cuts: np.ndarray) -> np.ndarray:
     """:func:`_sample` of each image of ``imgs`` (all the same shape) at its own run of ``uv`` (``uv`` cut at
-    ``cuts``), concatenated: the same values, with the clamping and the weights computed once for all
-    images (the refinement samples 8 images per evaluation; 4 gathers each remain)."""
+    ``cuts``), concatenated: the clamping and the bilinear weights are computed once for all images (the
+    refinement samples 8 images per evaluation; 4 gathers per image remain)."""
     h, w = imgs[0].shape[:2]
     chan = imgs[0].ndim > 2
     x = np.clip(uv[:, 0], 0, w - 1.001)
