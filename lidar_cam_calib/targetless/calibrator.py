@@ -907,9 +907,10 @@ def _calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig, diag: W
     masks = [f.mask for f in images] if any(f.mask is not None for f in images) else None
     # -- the LiDAR side (odometry, de-skew, the moving points, the edge views) does not need the SfM: it runs
     # in a second thread while the SfM runs (OpenCV, the kd-tree queries and numpy's array work release the
-    # GIL; the SfM keeps both cores busy most of the time, so this gains 0.1-1.5 s a window, not the LiDAR
-    # side's whole time). The same results: no random state is shared (the SfM's FLANN draws from OpenCV's
-    # RNG, which is per thread)
+    # GIL; OpenCV's stages of the SfM use both cores much of the time, so the two sides share the cores rather
+    # than fill an idle one: stop 36 measured 0.1-1.5 s a window, with BLAS's spinning threads, which
+    # calibrate_window now turns off, still taking a core). The same results: no random state is shared (the
+    # SfM's FLANN draws from OpenCV's RNG, which is per thread)
     def lidar_side() -> dict:
         # -- LiDAR odometry
         t1 = time.perf_counter()
