@@ -355,6 +355,47 @@ def test_prior_move_counts_tilt_and_height_in_prior_units_not_yaw_or_lateral():
         cfg.ours_max_prior_conflict
 
 
+def test_prior_move_measures_the_height_at_the_pivot():
+    """With a pivot, a tilt about it leaves the height there unchanged (the camera's moves by the tilt times
+    the lever arm), so only the tilt counts; a pure height move counts the same at the pivot as at the
+    camera."""
+    from lidar_cam_calib.core.geometry import so3_exp
+    from lidar_cam_calib.targetless.calibrator import _prior_move
+    cfg = TargetlessConfig()
+    up = np.array([0.0, -1.0, 0.0])
+    C = make_T(so3_exp(np.array([0.01, 0.3, -0.02])), np.array([0.2, -0.5, 1.1]))
+    p0 = np.array([0.5, 1.2, 12.0])  # camera frame of C: on the road 12 m ahead
+    s_t = np.radians(cfg.ours_edge_tilt_prior_deg)
+    R = so3_exp(np.array([2 * s_t, 0.0, 0.0]))
+    T = make_T(R @ C[:3, :3], R @ C[:3, 3] + p0 - R @ p0)  # turned about the pivot
+    at_pivot, at_camera = _prior_move(T, C, up, cfg, p0), _prior_move(T, C, up, cfg)
+    assert at_pivot["edge_prior_height_move_m"] == pytest.approx(0.0, abs=1e-9)
+    assert at_pivot["edge_prior_conflict"] == pytest.approx(4.0, rel=1e-6)
+    assert abs(at_camera["edge_prior_height_move_m"]) == pytest.approx(12.0 * 2 * s_t, rel=0.02)
+    T = make_T(C[:3, :3], C[:3, 3] + 0.05 * up)
+    assert _prior_move(T, C, up, cfg, p0)["edge_prior_height_move_m"] == pytest.approx(0.05, rel=1e-9)
+
+
+def test_height_pivot_is_where_the_horizontal_surfaces_are():
+    """The pivot is the registered points' centroid weighted by how horizontal the camera cloud is where
+    they land: a road patch 8-12 m ahead and a facade 30 m ahead give the road's centroid; points off the
+    cloud do not count; too few points, None."""
+    from scipy.spatial import cKDTree
+    from lidar_cam_calib.targetless.calibrator import _height_pivot
+    rng = np.random.default_rng(3)
+    road = np.c_[rng.uniform(8, 12, 3000), rng.uniform(-2, 2, 3000), np.zeros(3000)]   # levelled: z up
+    wall = np.c_[np.full(3000, 30.0), rng.uniform(-5, 5, 3000), rng.uniform(0.5, 6, 3000)]
+    cs = np.concatenate([road, wall])
+    nrm = np.concatenate([np.tile([0.0, 0.0, 1.0], (3000, 1)), np.tile([1.0, 0.0, 0.0], (3000, 1))])
+    tree = cKDTree(cs)
+    regl = np.concatenate([road[::3], wall[::3], np.array([[50.0, 50.0, 50.0]] * 100)])
+    q_cam = regl[:, [1, 2, 0]] * np.array([1.0, -1.0, 1.0])  # any frame: the same points as the camera sees them
+    p = _height_pivot(regl, q_cam, tree, nrm)
+    want = road[::3].mean(axis=0)
+    assert np.allclose(p, [want[1], -want[2], want[0]], atol=0.05), p
+    assert _height_pivot(regl[:40], q_cam[:40], tree, nrm) is None
+
+
 def test_predicted_projection_error_matches_sampled_errors():
     """The gate's predicted mean projection error equals the mean error of extrinsics drawn from the
     covariance (the bench's x_error_px / y_error_px), and grows with the translation uncertainty."""

@@ -252,6 +252,11 @@ class TargetlessConfig:
     ours_edge_height_prior_m: float = cfg_field(0.03, "ours, pose mode: 1-sigma prior of the height along the up "
                                                       "axis from the registered ground planes (vertical "
                                                       "silhouettes do not see it)", range=(0.0, 10.0))
+    ours_height_prior_at_pivot: bool = cfg_field(
+        True, "ours, pose mode: the height prior (ours_edge_height_prior_m) holds where the registered clouds fix "
+              "the height (the overlap's centroid weighted by its horizontal surfaces, metric "
+              "edge_height_pivot_m its distance), not at the camera: a tilt within its prior then moves the "
+              "camera's height by the tilt times that lever arm (False: at the camera, as before stop 38)")
     ours_paint_min_lift: float = cfg_field(0.25, "ours, pose mode: after the first edge fit, the paint (LiDAR "
                                                  "intensity) edges must meet the image edges at least this far "
                                                  "from chance towards the silhouettes' share, or the fit is "
@@ -286,6 +291,9 @@ class TargetlessConfig:
               "(0: no such starts)", range=(0.0, 2.0))
     ours_edge_basin_side_m: float = cfg_field(0.1, "ours, pose mode: the sideways shift of those starts (each way)",
                                               range=(0.0, 2.0))
+    ours_edge_basin_tilt_sigmas: float = cfg_field(
+        1.5, "ours, pose mode: two more such starts turned about the camera's horizontal axis (through the "
+             "height pivot) by this many tilt priors each way (0: none)", range=(0.0, 10.0))
     ours_edge_kind_check: bool = cfg_field(True, "ours, pose mode: the edge fit is also run on the silhouettes "
                                                  "alone and on the road paint alone (each from the result, the "
                                                  "same priors), to see whether the two kinds agree")
@@ -672,6 +680,28 @@ def _registered_distances(regl: np.ndarray, tree, cs: np.ndarray, nrm: np.ndarra
                 "overlap_above_ground_points": int(above.sum()), "overlap_points": int(ok.sum())}
 
 
+def _height_pivot(regl: np.ndarray, q_cam: np.ndarray, tree, nrm: np.ndarray,
+                  max_points: int = 5000) -> np.ndarray | None:
+    """Where the registered clouds fix the camera's height (camera frame): the centroid of the registered
+    overlap's points ``q_cam`` (the same points levelled, ``regl``), each weighted by the squared vertical
+    part of the camera cloud's normal where it lands (a point-to-plane fit pins the height where the
+    horizontal surfaces are: mostly the road ahead). A tilt error of the levelling turns about this point,
+    so the camera's own height is off by the tilt times the lever arm (measured on a side-looking VLP-32
+    window: 0.6 deg of tilt left the camera 16 cm low, its height at this pivot 10 m away 3 cm off). None
+    with fewer than 50 points or no horizontal surface."""
+    if regl.shape[0] < 50:
+        return None
+    idx = np.linspace(0, regl.shape[0] - 1, min(max_points, regl.shape[0])).astype(int)
+    d, nn = tree.query(regl[idx], k=1, distance_upper_bound=0.5, workers=-1)
+    ok = np.isfinite(d)
+    if ok.sum() < 50:
+        return None
+    w = nrm[nn[ok], 2] ** 2
+    if not float(w.sum()) > 1e-9:
+        return None
+    return (q_cam[idx][ok] * w[:, None]).sum(axis=0) / float(w.sum())
+
+
 def _drive_axes(X: np.ndarray, Ll: np.ndarray, T_link: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(driving direction, LiDAR ground normal) in the camera frame of the extrinsic ``X``."""
     d = T_link[:3, 3] / max(np.linalg.norm(T_link[:3, 3]), 1e-9)
@@ -692,17 +722,19 @@ def _rank_fit(views: list, cam, X: np.ndarray, Ll: np.ndarray, T_link: np.ndarra
     return f
 
 
-def _edge_fit(views: list, cam, X: np.ndarray, axes: tuple, cfg: TargetlessConfig, centre: np.ndarray):
+def _edge_fit(views: list, cam, X: np.ndarray, axes: tuple, cfg: TargetlessConfig, centre: np.ndarray,
+              pivot: np.ndarray | None = None):
     """The 6-DoF edge fit from ``X`` with the ground-plane priors on the tilt and the height about
     ``centre`` (the clouds' estimate, whatever the start); ``axes``: (driving direction, up) in the camera
-    frame (``_drive_axes``)."""
+    frame (``_drive_axes``); ``pivot``: where the height prior holds (camera frame of ``centre``; None: at
+    the camera, see :func:`_height_pivot`)."""
     d, up = axes
     return refine_pose(views, cam, X, cfg.edges, direction=d, up=up, tilt_prior_deg=cfg.ours_edge_tilt_prior_deg,
-                       height_prior_m=cfg.ours_edge_height_prior_m, prior_centre=centre)
+                       height_prior_m=cfg.ours_edge_height_prior_m, prior_centre=centre, height_pivot=pivot)
 
 
 def _edge_restarts(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg: TargetlessConfig,
-                   centre: np.ndarray):
+                   centre: np.ndarray, pivot: np.ndarray | None = None):
     """(fit, the restart's yaw in deg, 0 for none): the 6-DoF edge fit ``pe`` restarted from its result
     turned by -2, -1, 1, 2 times ``ours_edge_restart_yaw_deg`` about the edges' median point. Along that
     valley a yaw and a lateral shift trade off and a single start can stop in a side minimum; a restart
@@ -712,19 +744,20 @@ def _edge_restarts(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg
     best, taken = pe, 0.0
     for k in (-2, -1, 1, 2):
         a = k * cfg.ours_edge_restart_yaw_deg
-        r = _edge_fit(views, cam, yaw_about_edges(views, pe.T, axes[1], a), axes, cfg, centre)
+        r = _edge_fit(views, cam, yaw_about_edges(views, pe.T, axes[1], a), axes, cfg, centre, pivot)
         if r is not None and r.inliers >= best.inliers + cfg.ours_edge_restart_min_gain:
             best, taken = r, a
     return best, taken
 
 
-def _jackknife_cov(views: list, cam, pe, axes: tuple, cfg: TargetlessConfig, centre: np.ndarray):
+def _jackknife_cov(views: list, cam, pe, axes: tuple, cfg: TargetlessConfig, centre: np.ndarray,
+                   pivot: np.ndarray | None = None):
     """(6x6 jackknife covariance of the edge fit ``pe`` in its left-perturbation convention, number of
     refits) from the fit refitted without each view in turn (from ``pe.T``, the same priors); None when
     fewer than 4 refits have edges."""
     xs = []
     for i in range(len(views)):
-        r = _edge_fit(views[:i] + views[i + 1:], cam, pe.T, axes, cfg, centre)
+        r = _edge_fit(views[:i] + views[i + 1:], cam, pe.T, axes, cfg, centre, pivot)
         if r is not None:
             R = r.T[:3, :3] @ pe.T[:3, :3].T
             xs.append(np.concatenate([so3_log(R), r.T[:3, 3] - R @ pe.T[:3, 3]]))
@@ -742,7 +775,7 @@ def _delta(T: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
 
 
 def _edge_basins(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg: TargetlessConfig,
-                 centre: np.ndarray):
+                 centre: np.ndarray, pivot: np.ndarray | None = None):
     """(fit, spread 6x6 or None, number of fits within the margin, starts run): the 6-DoF edge fit also
     started from the clouds' estimate ``centre`` shifted along the driving direction (-2, -1, 1, 2 times
     ``ours_edge_basin_along_m``) and sideways (+-``ours_edge_basin_side_m``). The edge objective is rough:
@@ -751,18 +784,36 @@ def _edge_basins(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg: 
     1 cm. A start's fit replaces ``pe`` only when its inliers are ``ours_edge_restart_min_gain`` higher;
     the spread returned is the mean of d d^T over the fits (the result's own included, d = 0) whose
     inliers come within ``ours_edge_basin_margin`` of the result's: a second moment about the result, so
-    that a basin as good as the result widens the covariance towards it."""
+    that a basin as good as the result widens the covariance towards it.
+
+    Two more starts tilt the result ``pe`` up and down (about the camera's horizontal axis, through
+    ``pivot``, by +-``ours_edge_basin_tilt_sigmas`` times the tilt prior): the vertical silhouettes barely
+    see that tilt, the camera's height moves with it, and the fit can have a second minimum there (a
+    side-looking VLP-32 window stopped 0.6 deg and 16 cm off, its covariance saying 0.06 deg, in a basin
+    whose inliers were 0.717 where the truth's were 0.700)."""
     d, up = _drive_axes(centre, Ll, T_link)
     side = np.cross(up, d)
     side /= max(np.linalg.norm(side), 1e-9)
     a, b = cfg.ours_edge_basin_along_m, cfg.ours_edge_basin_side_m
-    shifts = [k * a * d for k in (-2, -1, 1, 2)] if a > 0 else []
-    shifts += [s * b * side for s in (-1, 1)] if b > 0 else []
+    starts = [(centre, np.zeros(3), k * a * d) for k in (-2, -1, 1, 2)] if a > 0 else []
+    starts += [(centre, np.zeros(3), s * b * side) for s in (-1, 1)] if b > 0 else []
+    u = up / max(np.linalg.norm(up), 1e-12)
+    h = np.cross(u, [0.0, 0.0, 1.0])  # the camera's horizontal axis (image rows move with a turn about it)
+    if cfg.ours_edge_basin_tilt_sigmas > 0 and np.linalg.norm(h) > 0.3:
+        h /= np.linalg.norm(h)
+        # the pivot moved with the fit (it is a point of the scene: where the clouds' estimate put it)
+        p0 = np.zeros(3) if pivot is None else \
+            transform_points(pe.T @ inv_T(centre), np.asarray(pivot, float)[None])[0]
+        for s in (-1, 1):
+            w = h * s * math.radians(cfg.ours_edge_basin_tilt_sigmas * cfg.ours_edge_tilt_prior_deg)
+            starts.append((pe.T, w, p0 - so3_exp(w) @ p0))  # turned about the pivot, which stays put
     fits = []
-    for sh in shifts:
-        X = centre.copy()
-        X[:3, 3] += sh
-        r = _edge_fit(views, cam, X, (d, up), cfg, centre)
+    for base, w, sh in starts:
+        R = so3_exp(w)
+        X = base.copy()
+        X[:3, :3] = R @ base[:3, :3]
+        X[:3, 3] = R @ base[:3, 3] + sh
+        r = _edge_fit(views, cam, X, (d, up), cfg, centre, pivot)
         if r is not None:
             fits.append(r)
     best = pe
@@ -773,17 +824,18 @@ def _edge_basins(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg: 
     if best is not pe:
         near = [r for r in near if r is not best] + [best]
     D = np.array([_delta(r.T, best.T) for r in near])
-    return best, (D.T @ D / len(near) if len(near) > 1 else None), len(near), len(shifts)
+    return best, (D.T @ D / len(near) if len(near) > 1 else None), len(near), len(starts)
 
 
-def _kind_fits(views: list, cam, pe, axes: tuple, cfg: TargetlessConfig, centre: np.ndarray) -> tuple:
+def _kind_fits(views: list, cam, pe, axes: tuple, cfg: TargetlessConfig, centre: np.ndarray,
+               pivot: np.ndarray | None = None) -> tuple:
     """(the two fits, or None, metrics): the edge fit ``pe`` refitted (from ``pe.T``, the same priors) on the
     silhouettes alone and on the road paint alone. The two kinds are independent measurements with their
     own failure modes (a silhouette sits where the laser's footprint left an object, paint where the
     reflectance steps on the road), so beyond their covariances they must agree: ``edge_kind_chi2`` is
     their difference's chi-square (6 DoF) against the sum of their covariances. None when either kind has
     too few edges to fit."""
-    fits = [_edge_fit(of_kind(views, cfg.edges, k), cam, pe.T, axes, cfg, centre) for k in (0, 1)]
+    fits = [_edge_fit(of_kind(views, cfg.edges, k), cam, pe.T, axes, cfg, centre, pivot) for k in (0, 1)]
     if fits[0] is None or fits[1] is None:
         return None, {}
     d = _delta(fits[0].T, fits[1].T)
@@ -804,8 +856,10 @@ def kind_widened(cov: np.ndarray, T: np.ndarray, kind_T: list) -> np.ndarray:
     return cov_upper(cov, D.T @ D)
 
 
-def _prior_move(T: np.ndarray, centre: np.ndarray, up: np.ndarray, cfg: TargetlessConfig) -> dict:
-    """How far the edge fit ``T`` moved the tilt and the height from the ground planes' ``centre`` (the
+def _prior_move(T: np.ndarray, centre: np.ndarray, up: np.ndarray, cfg: TargetlessConfig,
+                pivot: np.ndarray | None = None) -> dict:
+    """How far the edge fit ``T`` moved the tilt and the height (at ``pivot``, camera frame of ``centre``;
+    None: at the camera) from the ground planes' ``centre`` (the
     clouds' estimate, where the priors sit), in the priors' own perturbation (left, camera frame), and that
     move squared in units of the priors (``edge_prior_conflict``: chi-square with 3 degrees of freedom when
     the priors are honest and the edges see tilt and height better than the priors)."""
@@ -813,7 +867,8 @@ def _prior_move(T: np.ndarray, centre: np.ndarray, up: np.ndarray, cfg: Targetle
     R = T[:3, :3] @ centre[:3, :3].T
     w = so3_log(R)
     tilt = float(np.linalg.norm(w - (w @ u) * u))
-    height = float(u @ (T[:3, 3] - R @ centre[:3, 3]))
+    p0 = np.zeros(3) if pivot is None else np.asarray(pivot, float)
+    height = float(u @ (R @ p0 + T[:3, 3] - R @ centre[:3, 3] - p0))
     z2 = (tilt / math.radians(max(cfg.ours_edge_tilt_prior_deg, 1e-9))) ** 2 + \
         (height / max(cfg.ours_edge_height_prior_m, 1e-9)) ** 2
     return {"edge_prior_tilt_move_deg": math.degrees(tilt), "edge_prior_height_move_m": height,
@@ -1247,17 +1302,26 @@ def _calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig, diag: W
     diag.T_pre_edge = T_final
     if views:
         t5 = time.perf_counter()
-        # the tilt and height priors (ground planes) stay about the clouds' estimate for every start
+        # the tilt and height priors (ground planes) stay about the clouds' estimate for every start, the
+        # height's where the registration fixed it
         axes_centre = _drive_axes(T_final, Ll, link.T)
+        pivot = None
+        if cfg.ours_height_prior_at_pivot:
+            reg_in = lid[in_r][ok]
+            pivot = _height_pivot(transform_points(Ls @ T_final @ inv_T(T_sweep_img), reg_in),
+                                  transform_points(T_final @ inv_T(T_sweep_img), reg_in), tree, nrm)
+        if pivot is not None:
+            metrics["edge_height_pivot_m"] = float(np.linalg.norm(pivot))
 
         def first_fit(views_):
             """The edge fit from the clouds' estimate; when the edges chose the coarse translation, their
             own fit from it is a second start (the clouds' ICP may have slid away from it along the
             street)."""
             metrics.pop("edge_from_coarse_fit", None)
-            f = _edge_fit(views_, cam, T_final, axes_centre, cfg, T_final)
+            f = _edge_fit(views_, cam, T_final, axes_centre, cfg, T_final, pivot)
             if coarse_fit is not None:
-                f2 = _edge_fit(views_, cam, coarse_fit.T, _drive_axes(coarse_fit.T, Ll, link.T), cfg, T_final)
+                f2 = _edge_fit(views_, cam, coarse_fit.T, _drive_axes(coarse_fit.T, Ll, link.T), cfg, T_final,
+                               pivot)
                 if f2 is not None and (f is None or f2.inliers > f.inliers):
                     f = f2
                     metrics["edge_from_coarse_fit"] = 1
@@ -1282,17 +1346,18 @@ def _calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig, diag: W
         diag.edge_views, diag.edge_axes = views, axes_centre
         t6 = time.perf_counter()
         if pe is not None and cfg.ours_edge_restart_yaw_deg > 0:
-            pe, metrics["edge_restart_yaw_deg"] = _edge_restarts(views, cam, pe, Ll, link.T, cfg, T_final)
+            pe, metrics["edge_restart_yaw_deg"] = _edge_restarts(views, cam, pe, Ll, link.T, cfg, T_final, pivot)
         tm["edge_restarts"], t6 = time.perf_counter() - t6, time.perf_counter()
         spread = None
-        if pe is not None and (cfg.ours_edge_basin_along_m > 0 or cfg.ours_edge_basin_side_m > 0):
+        if pe is not None and (cfg.ours_edge_basin_along_m > 0 or cfg.ours_edge_basin_side_m > 0 or
+                               cfg.ours_edge_basin_tilt_sigmas > 0):
             pe1 = pe
             pe, spread, metrics["edge_basin_fits"], metrics["edge_basin_starts"] = _edge_basins(
-                views, cam, pe, Ll, link.T, cfg, T_final)
+                views, cam, pe, Ll, link.T, cfg, T_final, pivot)
             metrics["edge_basin_moved"] = int(pe is not pe1)
         tm["edge_basins"], t6 = time.perf_counter() - t6, time.perf_counter()
         if pe is not None and cfg.ours_edge_jackknife:
-            cj, n_jk = _jackknife_cov(views, cam, pe, _drive_axes(pe.T, Ll, link.T), cfg, T_final)
+            cj, n_jk = _jackknife_cov(views, cam, pe, _drive_axes(pe.T, Ll, link.T), cfg, T_final, pivot)
             metrics["edge_jackknife_refits"] = n_jk
             if cj is not None:
                 pe = _widen(pe, cj, metrics, "edge_jackknife_inflation")
@@ -1300,7 +1365,7 @@ def _calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig, diag: W
             pe = _widen(pe, spread, metrics, "edge_basin_inflation")
         tm["edge_jackknife"], t6 = time.perf_counter() - t6, time.perf_counter()
         if pe is not None and cfg.ours_edge_kind_check:
-            kind_fits, kind_m = _kind_fits(views, cam, pe, _drive_axes(pe.T, Ll, link.T), cfg, T_final)
+            kind_fits, kind_m = _kind_fits(views, cam, pe, _drive_axes(pe.T, Ll, link.T), cfg, T_final, pivot)
             metrics.update(kind_m)
         tm["edge_kind"] = time.perf_counter() - t6
         diag.edge_pose = pe
@@ -1314,7 +1379,7 @@ def _calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig, diag: W
                             "edge_delta_rot_deg": float(np.degrees(np.linalg.norm(
                                 so3_log(pe.T[:3, :3] @ T_final[:3, :3].T)))),
                             "edge_delta_norm_m": float(np.linalg.norm(pe.T[:3, 3] - T_final[:3, 3]))})
-            metrics.update(_prior_move(pe.T, T_final, axes_centre[1], cfg))
+            metrics.update(_prior_move(pe.T, T_final, axes_centre[1], cfg, pivot))
             T_final = pe.T
             # the registered clouds' distances again, now through the refined extrinsic
             metrics["hausdorff_before_edges_m"] = metrics.get("hausdorff_m", float("nan"))

@@ -683,7 +683,8 @@ def _scale(Hs: list, gs: list, naive: float, m: int) -> float:
 def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | None = None,
                 direction: np.ndarray | None = None, up: np.ndarray | None = None,
                 tilt_prior_deg: float = 0.0, height_prior_m: float = 0.0,
-                prior_centre: np.ndarray | None = None) -> PoseEdgeResult | None:
+                prior_centre: np.ndarray | None = None,
+                height_pivot: np.ndarray | None = None) -> PoseEdgeResult | None:
     """All six degrees of freedom of the extrinsic ``X`` (camera <- LiDAR at the exposure) from the
     LiDAR edges of each view's own sweep against that view's image edges.
 
@@ -700,7 +701,10 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     axes (and with ``height_prior_m`` > 0 on the translation along ``up``) around ``prior_centre`` (an
     extrinsic; default the start ``X``: a restart from a fit's own result must keep the prior where the
     ground planes put it, or each restart lets the tilt drift by another prior width); with
-    ``tilt_prior_deg`` = 0, only the yaw about ``up`` and the translation are fitted (4 DoF)."""
+    ``tilt_prior_deg`` = 0, only the yaw about ``up`` and the translation are fitted (4 DoF).
+    ``height_pivot`` (camera frame): the point where the ground planes fix the height (the registered
+    overlap's centroid); the height prior holds there, not at the camera, so that a tilt within its prior
+    moves the camera's height by the tilt times the lever arm (default: the camera's origin)."""
     cfg = cfg or EdgeConfig()
     K = cam.K
     V = []
@@ -752,7 +756,10 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     if u is not None and tilt_prior_deg > 0 and m == 6:
         Pt[:3, :3] = (np.eye(3) - np.outer(u, u)) / np.radians(tilt_prior_deg) ** 2
         if height_prior_m > 0:  # the height along the up axis (silhouettes are vertical: they do not see it)
-            Pt[3:, 3:] = np.outer(u, u) / height_prior_m ** 2
+            # at the pivot p0: a left perturbation (w, t) moves it up by u.(w x p0 + t) = (p0 x u).w + u.t
+            p0 = np.zeros(3) if height_pivot is None else np.asarray(height_pivot, float)
+            a = np.concatenate([np.cross(p0, u), u])
+            Pt += np.outer(a, a) / height_prior_m ** 2
     P = np.zeros((6, 6))
     xc = np.zeros(6)  # the prior's centre as a left perturbation of X
     if prior_centre is not None:
