@@ -598,6 +598,10 @@ class PoseEdgeResult:
     n_points: int
     n_views: int
     dispersion: float               # scatter of the per-image optima over what their information predicts
+    # (6,6) the fit's information at the optimum (Cauchy-weighted J^T J plus the priors, in the residual's own
+    # units: cov = pinv(info) * the dispersion-scaled residual variance); a leave-out refit's information
+    # against it says how much of the fit the left-out part carried (the jackknife's leverage)
+    info: np.ndarray | None = None
 
 
 def _field(dist: np.ndarray, trunc: float, blur: float) -> np.ndarray:
@@ -847,7 +851,7 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     T[:3, 3] = so3_exp(xi[:3]) @ X[:3, 3] + xi[3:]
     return PoseEdgeResult(T=T, xi=xi, cov=B @ Hinv @ B.T * scale, cost0=float(r0.mean()), cost=float(r1.mean()),
                           inliers0=float(np.mean(r0 < 1.5)), inliers=float(np.mean(r1 < 1.5)), n_points=n,
-                          n_views=len(V), dispersion=scale / max(naive, 1e-12))
+                          n_views=len(V), dispersion=scale / max(naive, 1e-12), info=B @ H @ B.T)
 
 
 __all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "azimuth_step_rad", "edge_kind_inliers",
