@@ -694,26 +694,36 @@ def test_bilinear_sampling_of_one_and_of_several_images():
 
 
 def _ls_fits(A: np.ndarray, y: np.ndarray, groups: np.ndarray):
-    """A linear least-squares translation problem (rows A, data y) solved on all rows and without each group
-    in turn, as edge-fit results (the rotation fixed: identity information, no offset)."""
+    """A linear least-squares translation problem (rows A, data y) solved on all rows (as an edge-fit
+    result: the rotation fixed, identity information) and without each group in turn: (full fit, the
+    refits' offsets from it (g, 6), each group's information (g, 6, 6))."""
     from lidar_cam_calib.targetless.edges import PoseEdgeResult
 
-    def fit(rows):
-        H = np.eye(6)
-        H[3:, 3:] = A[rows].T @ A[rows]
-        t = np.linalg.solve(H[3:, 3:], A[rows].T @ y[rows])
-        return PoseEdgeResult(T=make_T(np.eye(3), t), xi=np.zeros(6), cov=np.linalg.inv(H), cost0=0.0, cost=0.0,
-                              inliers0=1.0, inliers=1.0, n_points=int(rows.sum()), n_views=1, dispersion=1.0, info=H)
-    return fit(np.ones(len(y), bool)), [fit(groups != b) for b in np.unique(groups)]
+    def solve(rows):
+        return np.linalg.solve(A[rows].T @ A[rows], A[rows].T @ y[rows])
+    H = np.eye(6)
+    H[3:, 3:] = A.T @ A
+    t = solve(np.ones(len(y), bool))
+    full = PoseEdgeResult(T=make_T(np.eye(3), t), xi=np.zeros(6), cov=np.linalg.inv(H), cost0=0.0, cost=0.0,
+                          inliers0=1.0, inliers=1.0, n_points=len(y), n_views=1, dispersion=1.0, info=H)
+    xs, Hg = [], []
+    for b in np.unique(groups):
+        xs.append(np.concatenate([np.zeros(3), solve(groups != b) - t]))
+        Hb = np.zeros((6, 6))
+        Hb[3:, 3:] = A[groups == b].T @ A[groups == b]
+        Hg.append(Hb)
+    return full, np.array(xs), np.array(Hg)
 
 
 def test_leverage_jackknife_matches_the_true_covariance_when_one_group_carries_a_direction():
     """Six groups of equal size; one of them holds nearly all the information along x (the one band of image
     columns whose edges pin the translation along the street). Over many noise draws the plain jackknife's
     x variance comes out many times the true one (without that group the refit is barely posed along x);
-    the leverage-weighted one comes out near the truth, and near the plain one's along y and z, which
-    every group measures alike. With groups of equal weight the two are the same."""
-    from lidar_cam_calib.targetless.calibrator import _leave_out_cov
+    the leverage-weighted one (pure CR2, ours_edge_jackknife_min_rest 0) comes out near the truth, and
+    near the plain one's along y and z, which every group measures alike. With the default cutoff the
+    x offset of the group that holds x is left out (the jackknife cannot measure x; the fit's own
+    covariance does): no blow-up, y and z unchanged. With groups of equal weight all three agree."""
+    from lidar_cam_calib.targetless.calibrator import TargetlessConfig, _leave_out_cov
     rng = np.random.default_rng(3)
     g, n = 6, 40
     groups = np.repeat(np.arange(g), n)
@@ -722,20 +732,25 @@ def test_leverage_jackknife_matches_the_true_covariance_when_one_group_carries_a
     A[:, 0] = 0.05 * rng.normal(size=g * n)
     A[:n, 0] = rng.normal(size=n) * 3.0            # group 0 sees x
     true = np.linalg.inv(A.T @ A)                   # unit noise
-    sums = {True: np.zeros((6, 6)), False: np.zeros((6, 6))}
+    cfgs = {"cr2": TargetlessConfig(ours_edge_jackknife_min_rest=0.0), "cut": TargetlessConfig()}
+    sums = {k: np.zeros((6, 6)) for k in ("plain", "cr2", "cut")}
     draws = 300
     for _ in range(draws):
         y = A @ np.array([0.1, -0.2, 0.3]) + rng.normal(size=g * n)
-        full, fits = _ls_fits(A, y, groups)
-        for lev in (True, False):
-            sums[lev] += _leave_out_cov(full, fits, lev)
-    lev, plain = sums[True][3:, 3:] / draws, sums[False][3:, 3:] / draws
-    assert plain[0, 0] > 20 * true[0, 0], (plain[0, 0], true[0, 0])
-    assert 0.6 * true[0, 0] < lev[0, 0] < 1.6 * true[0, 0], (lev[0, 0], true[0, 0])
-    for k in (1, 2):
-        assert 0.6 * true[k, k] < lev[k, k] < 1.6 * true[k, k], (k, lev[k, k], true[k, k])
-    # equal groups (every group the same rows): the two formulas agree
+        full, xs, Hg = _ls_fits(A, y, groups)
+        sums["plain"] += _leave_out_cov(full, xs, None, cfgs["cut"])
+        for k in ("cr2", "cut"):
+            sums[k] += _leave_out_cov(full, xs, Hg, cfgs[k])
+    v = {k: np.diag(c[3:, 3:]) / draws / np.diag(true) for k, c in sums.items()}
+    assert v["plain"][0] > 20, v
+    assert 0.6 < v["cr2"][0] < 1.6, v
+    assert v["cut"][0] < 1.0, v
+    for k in ("plain", "cr2", "cut"):
+        assert np.all((v[k][1:] > 0.6) & (v[k][1:] < 1.6)), (k, v)
+    # equal groups (every group the same rows): the three agree
     A_eq = np.tile(A[:n], (g, 1))
     y = A_eq @ np.array([0.1, -0.2, 0.3]) + rng.normal(size=g * n)
-    full, fits = _ls_fits(A_eq, y, groups)
-    assert np.allclose(_leave_out_cov(full, fits, True), _leave_out_cov(full, fits, False), rtol=1e-6, atol=1e-12)
+    full, xs, Hg = _ls_fits(A_eq, y, groups)
+    ref = _leave_out_cov(full, xs, None, cfgs["cut"])
+    for k in ("cr2", "cut"):
+        assert np.allclose(_leave_out_cov(full, xs, Hg, cfgs[k]), ref, rtol=1e-6, atol=1e-12)

@@ -75,8 +75,8 @@ from ..core.threads import one_blas_thread
 from .align import (AlignConfig, HoughResult, estimate_normals, hough_align, icp_translation,
                     layered_bev_translation, wahba,
                     icp_point_to_plane)
-from .edges import (EdgeConfig, EdgeView, azimuth_step_rad, edge_kind_inliers, of_kind, prepare_view, refine_pose,
-                    refine_translation, ring_spacing_deg, without_paint, yaw_about_edges)
+from .edges import (EdgeConfig, EdgeView, azimuth_step_rad, edge_group_information, edge_kind_inliers, of_kind,
+                    prepare_view, refine_pose, refine_translation, ring_spacing_deg, without_paint, yaw_about_edges)
 from .dynamic import (dynamic_objects, interpolate_pose, lidar_odometry, metric_scale, moving_clusters, point_motion,
                       voxel_down)
 from .frame import CameraFrame, LidarSweep
@@ -288,12 +288,21 @@ class TargetlessConfig:
         6, "ours, pose mode: the covariance is also at least the jackknife spread of the edge fit refitted "
            "without each of this many bands of image columns in turn (the images share their objects, so an "
            "object's error is in every image; fewer than 3: off)", range=(0, 32))
+    ours_edge_jackknife_local: bool = cfg_field(
+        True, "ours, pose mode: the jackknifes' refits start from the fit without the edge fit's 1-D search "
+              "along the street (a local re-optimisation, as a jackknife assumes; the basin starts look for "
+              "other minima along the street); False: each refit searches again")
     ours_edge_jackknife_leverage: bool = cfg_field(
         True, "ours, pose mode: both jackknifes weigh each refit's offset by its left-out group's share of the "
               "information (the full fit's information less the refit's): a group that carries most of the "
               "information along some direction (the one band of columns that pins the translation along the "
               "street) then counts for what it measures, not for how ill-posed the fit is without it (the CR2 "
               "weighting, see _leave_out_cov); False: the plain jackknife, which assumes groups of equal weight")
+    ours_edge_jackknife_min_rest: float = cfg_field(
+        0.2, "ours, pose mode, with ours_edge_jackknife_leverage: a refit's offset along a direction where the "
+             "groups left in hold less than this share of the fit's information is left out (there the refit "
+             "is a barely posed fit, not a perturbed one; the fit's own covariance stays); 0: pure CR2",
+        range=(0.0, 1.0))
     ours_edge_basin_along_m: float = cfg_field(
         0.15, "ours, pose mode: the edge fit is also started from the clouds' estimate shifted by -2, -1, 1, 2 "
               "times this along the driving direction (and by ours_edge_basin_side_m sideways); the fits whose "
@@ -765,45 +774,66 @@ def _jackknife_cov(views: list, cam, pe, axes: tuple, cfg: TargetlessConfig, cen
     """(6x6 jackknife covariance of the edge fit ``pe`` in its left-perturbation convention, number of
     refits) from the fit refitted without each view in turn (from ``pe.T``, the same priors); None when
     fewer than 4 refits have edges."""
+    axes = _leave_out_axes(axes, cfg)
     fits = [_edge_fit(views[:i] + views[i + 1:], cam, pe.T, axes, cfg, centre, pivot) for i in range(len(views))]
-    fits = [r for r in fits if r is not None]
-    if len(fits) < 4:
-        return None, len(fits)
-    return _leave_out_cov(pe, fits, cfg.ours_edge_jackknife_leverage), len(fits)
+    keep = [i for i, r in enumerate(fits) if r is not None]
+    if len(keep) < 4:
+        return None, len(keep)
+    Hg = edge_group_information(views, cam, pe.T, cfg.edges) if cfg.ours_edge_jackknife_leverage else None
+    return _leave_out_cov(pe, np.array([_delta(fits[i].T, pe.T) for i in keep]),
+                          None if Hg is None else Hg[keep], cfg), len(keep)
 
 
-def _leave_out_cov(pe, fits: list, leverage: bool) -> np.ndarray:
-    """The delete-a-group jackknife covariance of the edge fit ``pe`` from its leave-one-group-out refits
-    ``fits`` (g of them): (g-1)/g sum (d - mean)(d - mean)^T of the refits' offsets d from ``pe``.
+def _leave_out_axes(axes: tuple, cfg: TargetlessConfig) -> tuple:
+    """The axes a leave-out refit gets: with ``ours_edge_jackknife_local`` no driving direction, so that
+    the refit is the local re-optimisation from the fit that a jackknife assumes. The edge fit's 1-D
+    search along the street (+-``edges.search_m``, on the coarse field) is a global move: without a band of
+    columns that held 8 % of slow 5706 w1's edges it chose another place 494 mm along the street, where
+    the refit then settled, though the bands left held 78 % of the fit's information along the street
+    and its 0.35 px result was right (the block jackknife widened it 407x); the basin starts
+    (:func:`_edge_basins`) are what looks for another minimum along the street."""
+    return (None, axes[1]) if cfg.ours_edge_jackknife_local else axes
 
-    Plain, that holds for groups of equal weight. A group that carries most of the information along some
-    direction leaves the refit barely posed there, and its offset blows up (slow 5706 w0: without either
-    middle band of columns, 8 % of the edges each but what pins the translation along the street, the
-    refits slid 146 and 494 mm along it and the plain jackknife widened a 0.35 px result 407x).
 
-    With ``leverage`` each offset is first weighed by its group's share of the information, in the full
-    fit's whitened coordinates z = H^1/2 d: z' = (I - M_b)^1/2 z, M_b = H^-1/2 H_b H^-1/2, H_b = H - H_-b
-    (the full fit's information less the refit's), and the sum is not scaled by (g-1)/g: the
-    parameter-space form of the bias-reduced cluster-robust (CR2) estimator. For equal groups M_b = I/g and
-    the two agree; on a linear problem with one group holding nearly all of a direction's information the
-    plain estimate is 290x the true variance there, this one 0.8x (test_targetless_edges). With (I - M_b)
-    in place of its root (the sandwich), 0.01x: the full fit has nearly zeroed that group's residuals."""
-    g = len(fits)
-    xs = np.array([_delta(r.T, pe.T) for r in fits])
-    if leverage and pe.info is not None and all(r.info is not None for r in fits):
-        w, V = np.linalg.eigh(0.5 * (pe.info + pe.info.T))
-        pos = w > 1e-12 * max(float(w.max()), 1e-300)
-        S = (V[:, pos] / np.sqrt(w[pos])) @ V[:, pos].T        # H^-1/2 (on the observed directions)
-        Si = (V[:, pos] * np.sqrt(w[pos])) @ V[:, pos].T       # H^1/2
-        out = []
-        for r, x in zip(fits, xs):
-            M = S @ (pe.info - r.info) @ S
-            mw, mv = np.linalg.eigh(np.eye(6) - 0.5 * (M + M.T))
-            out.append(S @ (mv * np.sqrt(np.clip(mw, 0.0, 1.0))) @ mv.T @ Si @ x)
-        d = np.array(out) - np.mean(out, axis=0)
-        return d.T @ d
-    d = xs - xs.mean(axis=0)
-    return (g - 1) / g * d.T @ d
+def _leave_out_cov(pe, xs: np.ndarray, Hg: np.ndarray | None, cfg: TargetlessConfig) -> np.ndarray:
+    """The delete-a-group jackknife covariance of the edge fit ``pe`` from its leave-one-group-out refits'
+    offsets ``xs`` (g, 6) from it: (g-1)/g sum (x - mean)(x - mean)^T.
+
+    That holds for groups of equal weight. A group that carries most of the information along some
+    direction leaves the refit barely posed there, and its offset blows up: the bands of image columns are
+    far from equal (slow 5706 w1 at its fit: one band of 8 % of the edges holds 55 % of the information
+    along the street, two bands of 40 % each hold none), and fast 5809 w0 and w1 carry a bias every image
+    repeats, so there the block jackknife is what widens the covariance.
+
+    With ``Hg`` (g, 6, 6), each group's information at ``pe`` (:func:`edge_group_information`), each offset
+    is first weighed by its group's share of the information, in the full fit's whitened coordinates
+    z = H^1/2 x (H = ``pe.info``): z' = (I - M_b)^1/2 z, M_b = H^-1/2 H_b H^-1/2, and the sum is not scaled
+    by (g-1)/g: the parameter-space form of the bias-reduced cluster-robust (CR2) estimator. For equal
+    groups M_b = I/g and the two agree; on a linear problem with one group holding nearly all of a
+    direction's information the plain estimate is 290x the true variance there, this one 0.8x
+    (test_targetless_edges). Along the directions where the other groups hold less than
+    ``ours_edge_jackknife_min_rest`` of the information the offset is left out altogether: there the refit
+    is not a perturbed fit but a different, barely posed one, and the jackknife cannot say more than the
+    fit's own information, which stays in the covariance. On the stored windows: fast 5809 w1 (1.1 / 1.6
+    px) Mahalanobis^2 1.9 -> 3.1 (block widening 3.8x -> 2.9x), fast 5809 w0 (0.7 / 1.5 px) refused for a
+    predicted 2.6 px -> accepted at 10.5, slow 5706 w0 (1.8 / 1.1 px) still refused."""
+    g = len(xs)
+    if Hg is None or pe.info is None:
+        d = xs - xs.mean(axis=0)
+        return (g - 1) / g * d.T @ d
+    w, V = np.linalg.eigh(0.5 * (pe.info + pe.info.T))
+    pos = w > 1e-12 * max(float(w.max()), 1e-300)
+    S = (V[:, pos] / np.sqrt(w[pos])) @ V[:, pos].T        # H^-1/2 (on the observed directions)
+    Si = (V[:, pos] * np.sqrt(w[pos])) @ V[:, pos].T       # H^1/2
+    out = []
+    for Hb, x in zip(Hg, xs):
+        M = S @ Hb @ S
+        mw, mv = np.linalg.eigh(0.5 * (M + M.T))
+        rest = np.clip(1.0 - mw, 0.0, 1.0)
+        f = np.where(rest >= cfg.ours_edge_jackknife_min_rest, np.sqrt(rest), 0.0)
+        out.append(S @ (mv * f) @ mv.T @ Si @ x)
+    d = np.array(out) - np.mean(out, axis=0)
+    return d.T @ d
 
 
 def _block_jackknife_cov(views: list, cam, pe, axes: tuple, cfg: TargetlessConfig, centre: np.ndarray,
@@ -816,6 +846,7 @@ def _block_jackknife_cov(views: list, cam, pe, axes: tuple, cfg: TargetlessConfi
     scene that carries it can (fast 5809 w1: 0.32 deg of pitch with all 8 image refits within 0.02 deg
     of it; without the outer bands, 0.13 and 0.21 deg back). None with fewer than 3 refits."""
     nb = int(cfg.ours_edge_block_jackknife)
+    axes = _leave_out_axes(axes, cfg)
     bands = []
     for v in views:
         prepare_view(v, cfg.edges)
@@ -826,10 +857,12 @@ def _block_jackknife_cov(views: list, cam, pe, axes: tuple, cfg: TargetlessConfi
         sub = [dataclasses.replace(v, edges=v.edges[k != b], kinds=v.kinds[k != b]) for v, k in zip(views, bands)]
         r = _edge_fit(sub, cam, pe.T, axes, cfg, centre, pivot)
         if r is not None:
-            fits.append(r)
+            fits.append((b, r))
     if len(fits) < 3:
         return None, len(fits)
-    return _leave_out_cov(pe, fits, cfg.ours_edge_jackknife_leverage), len(fits)
+    Hg = edge_group_information(views, cam, pe.T, cfg.edges, nb) if cfg.ours_edge_jackknife_leverage else None
+    return _leave_out_cov(pe, np.array([_delta(r.T, pe.T) for _, r in fits]),
+                          None if Hg is None else Hg[[b for b, _ in fits]], cfg), len(fits)
 
 
 def _delta(T: np.ndarray, T_ref: np.ndarray) -> np.ndarray:

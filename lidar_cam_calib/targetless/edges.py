@@ -854,6 +854,40 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
                           n_views=len(V), dispersion=scale / max(naive, 1e-12), info=B @ H @ B.T)
 
 
-__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "azimuth_step_rad", "edge_kind_inliers",
-           "image_distance", "lidar_edges", "prepare_view", "proj_jacobian", "refine_pose", "refine_translation",
-           "of_kind", "without_paint", "yaw_about_edges"]
+def edge_group_information(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig,
+                           n_bands: int = 0) -> np.ndarray:
+    """The information (Gauss-Newton, Cauchy-weighted, unscaled: the units of ``PoseEdgeResult.info``) of
+    the fine edge objective of :func:`refine_pose` at ``X`` (its visible points and thinning), split by
+    group: (n_groups, 6, 6), one group per view (``n_bands`` 0; views with too few visible edges get
+    zeros) or per band of image columns (``n_bands`` bands of equal width). What each group contributes
+    to the fit's information at its optimum, which a leave-one-group-out refit elsewhere cannot say."""
+    c = cfg.pose_cauchy_px
+    out = np.zeros((n_bands if n_bands > 0 else len(views), 6, 6))
+    for i, v in enumerate(views):
+        E = prepare_view(v, cfg).edges
+        if E.shape[0] < cfg.view_min_points:
+            continue
+        Tk = X @ inv_T(v.T_sweep_img)
+        vis = _visible(cam, Tk, E, occluders(v))
+        if vis.sum() < cfg.view_min_points:
+            continue
+        idx = np.flatnonzero(vis)
+        if idx.size > cfg.pose_max_points:
+            idx = idx[np.linspace(0, idx.size - 1, cfg.pose_max_points).astype(int)]
+        q = transform_points(Tk, E[idx])
+        uv, _ = cam.project(q)
+        s3 = _sample(view_field(v, cfg.truncate_px, cfg.pose_fine_blur_px), uv)
+        J = field_jacobian(cam.K, q, s3[:, 1:])
+        J *= np.sqrt(1.0 / (1.0 + (s3[:, 0] / c) ** 2))[:, None]
+        if n_bands <= 0:
+            out[i] = J.T @ J
+            continue
+        band = np.clip(np.floor(uv[:, 0] / cam.width * n_bands), 0, n_bands - 1).astype(int)
+        for b in range(n_bands):
+            out[b] += J[band == b].T @ J[band == b]
+    return out
+
+
+__all__ = ["EdgeConfig", "EdgeResult", "EdgeView", "PoseEdgeResult", "azimuth_step_rad", "edge_group_information",
+           "edge_kind_inliers", "image_distance", "lidar_edges", "prepare_view", "proj_jacobian", "refine_pose",
+           "refine_translation", "of_kind", "without_paint", "yaw_about_edges"]
