@@ -178,7 +178,7 @@ class TargetlessConfig:
              "(stop 39, fast 6400: four drives whose windows were each 1-2 px off with an honest covariance, "
              "window Mahalanobis^2 median 5.3, were published with Mahalanobis^2 8.7-26.5 when fused as "
              "independent). Re-fused offline over stop 39's 40 fresh drives: the published Mahalanobis^2 "
-             "medians 4.6 / 5.6 / 4.9 / 8.7 with 0 (3 of 26 above 16), 4.9 / 4.1 / 3.9 / 4.6 with 0.5 (none "
+             "medians 4.6 / 5.6 / 4.9 / 8.7 with 0 (2 of 26 above 16), 4.9 / 4.1 / 3.9 / 4.6 with 0.5 (none "
              "above 16; one good fast drive's two windows then disagree and it is not published)",
         range=(0.0, 0.95))
     fuse_min_windows: int = cfg_field(2, "a result is published once this many accepted windows agree (two "
@@ -304,7 +304,7 @@ class TargetlessConfig:
               "other minima along the street); False: each refit searches again")
     ours_edge_jackknife_leverage: bool = cfg_field(
         True, "ours, pose mode: both jackknifes weigh each refit's offset by its left-out group's share of the "
-              "information (the full fit's information less the refit's): a group that carries most of the "
+              "fit's information (the group's own information at the fit): a group that carries most of the "
               "information along some direction (the one band of columns that pins the translation along the "
               "street) then counts for what it measures, not for how ill-posed the fit is without it (the CR2 "
               "weighting, see _leave_out_cov); False: the plain jackknife, which assumes groups of equal weight")
@@ -819,7 +819,7 @@ def _leave_out_cov(pe, xs: np.ndarray, Hg: np.ndarray | None, cfg: TargetlessCon
     That holds for groups of equal weight. A group that carries most of the information along some
     direction leaves the refit barely posed there, and its offset blows up: the bands of image columns are
     far from equal (slow 5706 w1 at its fit: one band of 8 % of the edges holds 55 % of the information
-    along the street, two bands of 40 % each hold none), and fast 5809 w0 and w1 carry a bias every image
+    along the street, the two outer bands of 40 % each none of it), and fast 5809 w0 and w1 carry a bias every image
     repeats, so there the block jackknife is what widens the covariance.
 
     With ``Hg`` (g, 6, 6), each group's information at ``pe`` (:func:`edge_group_information`), each offset

@@ -599,8 +599,8 @@ class PoseEdgeResult:
     n_views: int
     dispersion: float               # scatter of the per-image optima over what their information predicts
     # (6,6) the fit's information at the optimum (Cauchy-weighted J^T J plus the priors, in the residual's own
-    # units: cov = pinv(info) * the dispersion-scaled residual variance); a leave-out refit's information
-    # against it says how much of the fit the left-out part carried (the jackknife's leverage)
+    # units: cov = pinv(info) * the dispersion-scaled residual variance); a group's own information at the fit
+    # (edge_group_information) against it is that group's leverage in the jackknifes
     info: np.ndarray | None = None
 
 
