@@ -271,7 +271,7 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     # provisional, and since it agrees with the accepted one the fusion of the two is published. Two identical
     # estimates fuse to the same extrinsic; of their covariance C the fusion halves only the part the windows do
     # not share: the clock F and fuse_window_correlation (rho) of the rest stay, (1 - rho) (C - F) / 2 +
-    # rho (C - F) + F
+    # rho (C - F) + F (test_fusion_keeps_the_error_the_windows_of_a_drive_share tests rho > 0)
     cal.cfg = dataclasses.replace(cfg, ours_min_coarse_edge_ratio=10.0, ours_min_bev_peak_ratio=1e9)
     res2 = cal.fit()
     assert res2.metrics["window_provisional"] == 1 and res2.metrics["windows_fused_provisional"] == 1
@@ -283,8 +283,7 @@ def test_ours_recovers_the_extrinsic_on_a_simulated_window():
     s_clock = math.sqrt(np.trace(F[3:, 3:]))
     assert 0.001 < s_clock < 0.02 and np.linalg.matrix_rank(F[3:, 3:], tol=1e-4 * s_clock ** 2) == 1
     assert np.allclose(res2.T_child_parent, T, atol=1e-9)
-    rho = cfg.fuse_window_correlation
-    assert 0 < rho < 1
+    rho = cfg.fuse_window_correlation  # 0 by default: (C - F) / 2 + F
     assert np.allclose(res2.covariance, (1 - rho) * (cov - F) / 2 + rho * (cov - F) + F, rtol=1e-6, atol=1e-12)
     assert res2.metrics["windows_fused"] == 2 and res2.observations_used == 2 * cfg.n_frames
     assert res2.metrics["windows_tried"] == 3 and res2.metrics["windows_accepted"] == 1
@@ -336,19 +335,19 @@ def test_provisional_windows_count_only_beside_an_accepted_one():
 
 def test_fusion_keeps_the_error_the_windows_of_a_drive_share():
     """Three windows of one drive, each with an honest covariance C, whose errors are half shared (one draw
-    per drive) and half their own: fused as independent (``fuse_window_correlation`` 0) the published
-    covariance is C / 3 and the Mahalanobis^2 of the published error averages about 12 over many drives;
-    with the default correlation (0.5) about 6, as it should. Windows whose errors are independent come
-    out too wide with it (about 2.5), which is the price when a drive's windows do not share their error."""
+    per drive) and half their own: fused as independent (``fuse_window_correlation`` 0, the default) the
+    published covariance is C / 3 and the Mahalanobis^2 of the published error averages about 12 over many
+    drives; with 0.5 about 6, as it should. Windows whose errors are independent come out too wide with 0.5
+    (about 2.5): what a correlation costs on drives whose windows do not share their error."""
     from lidar_cam_calib.core.geometry import so3_exp, so3_log
     from lidar_cam_calib.targetless.calibrator import fuse_accepted
     rng = np.random.default_rng(11)
     T0 = make_T(rz(0.3), np.array([0.1, -0.2, 0.05]))
     sd = np.array([np.radians(0.05)] * 3 + [0.01] * 3)
     cov = np.diag(sd ** 2)
-    cfg = TargetlessConfig()
-    assert cfg.fuse_window_correlation == 0.5
-    indep = dataclasses.replace(cfg, fuse_window_correlation=0.0)
+    indep = TargetlessConfig()
+    assert indep.fuse_window_correlation == 0.0
+    cfg = dataclasses.replace(indep, fuse_window_correlation=0.5)
 
     def m2(f):
         e = np.concatenate([so3_log(f.T[:3, :3] @ T0[:3, :3].T), f.T[:3, 3] - T0[:3, 3]])
