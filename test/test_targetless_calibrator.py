@@ -176,6 +176,48 @@ def test_odometry_at_speed_does_not_stop_at_rest():
     assert np.all(np.abs(step - 1.8) < 0.18), step
 
 
+def test_odometry_refit_on_deskewed_sweeps():
+    """A LiDAR on a car at 18 m/s (65 km/h) along a street of facades, poles and parked cars; every point
+    measured at its own time within the 0.1 s sweep, from where the sensor was then, so each raw sweep is
+    bent by the 1.8 m the car travels during it. Scan-to-scan ICP on the bent sweeps gets the travel per
+    sweep short; fitted again on the sweeps de-skewed with that first estimate (``sweep_odometry``, the
+    default), the travel over five links comes out about three times closer to the truth."""
+    import dataclasses as dc
+    from lidar_cam_calib.targetless.calibrator import sweep_odometry
+    rng = np.random.default_rng(5)
+    walls = [np.stack([rng.uniform(-60, 90, 15000), np.full(15000, y), rng.uniform(0, 6, 15000)], 1)
+             for y in (8.0, -7.0)]
+    walls = [w[(w[:, 0] % 3.0) < 2.0] for w in walls]  # facades with window recesses: along-track structure
+    poles = []
+    for x in np.arange(-50, 85, 5.0) + rng.uniform(-1.5, 1.5, 27):
+        a = rng.uniform(0, 2 * np.pi, 150)
+        poles.append(np.stack([x + 0.15 * np.cos(a), rng.choice([-4.5, 5.0]) + 0.15 * np.sin(a),
+                               rng.uniform(0, 4, 150)], 1))
+    cars = [rng.uniform([0, 0, 0], [4.2, 1.8, 1.5], (800, 3)) + [x, rng.choice([-6.0, 5.0]), 0.0]
+            for x in rng.uniform(-50, 85, 10)]
+    world = np.concatenate(walls + poles + cars)
+    v, period, h = 18.0, 0.1, 1.8
+    sweeps = []
+    for k in range(6):
+        x0 = v * period * k
+        rel = world - [x0, 0.0, h]
+        keep = np.linalg.norm(rel[:, :2], axis=1) < 40
+        rel = rel[keep]
+        # spinning from azimuth -180 deg: each point's time from its azimuth at the sweep start, and its
+        # coordinates from where the sensor was at that time
+        t = (np.arctan2(rel[:, 1], rel[:, 0]) + np.pi) / (2 * np.pi) * period
+        pts = world[keep] - np.stack([x0 + v * t, np.zeros_like(t), np.full_like(t, h)], 1)
+        sweeps.append(LidarSweep(period * k, pts + rng.normal(0, 0.01, pts.shape), time_s=t))
+    cfg = TargetlessConfig()
+    assert cfg.deskew and cfg.odometry_deskew_refit
+    err = {}
+    for name, c in (("raw", dc.replace(cfg, odometry_deskew_refit=False)), ("refit", cfg)):
+        poses, links = sweep_odometry(sweeps, c)
+        err[name] = float(poses[-1][0, 3] - v * period * (len(sweeps) - 1))
+    # the bent sweeps' ICP comes out short (about 0.3 m over the 9 m of five links); refitted, a third of that
+    assert err["raw"] < -0.2 and abs(err["refit"]) < 0.4 * abs(err["raw"]), err
+
+
 @pytest.mark.skipif(not os.path.isdir(os.path.join(SHARED_DATA, "kitti_2011_09_26_seq_dev")),
                     reason="shared KITTI data not present")
 def test_kitti_window_scale_from_lidar_odometry():

@@ -463,6 +463,18 @@ def _median_flow_px(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.percentile(np.linalg.norm((nxt - pts).reshape(-1, 2)[ok], axis=1), 75))
 
 
+def sweep_odometry(sweeps: list, cfg: TargetlessConfig) -> tuple[np.ndarray, list]:
+    """(poses ``T_first_k``, links) of consecutive ``sweeps`` by scan-to-scan ICP (:func:`lidar_odometry`);
+    with ``deskew`` and ``odometry_deskew_refit``, fitted again on the sweeps de-skewed with the first
+    estimate's links: the raw sweeps of a moving LiDAR are bent by the motion during the sweep, and ICP
+    between bent sweeps comes out short and turned (``test_odometry_refit_on_deskewed_sweeps``)."""
+    poses, links = lidar_odometry([s.points for s in sweeps])
+    if cfg.deskew and cfg.odometry_deskew_refit and len(links) > 0:
+        poses, links = lidar_odometry([deskew_sweep(s, links[j - 1].T if j > 0 else links[0].T, cfg)
+                                       for j, s in enumerate(sweeps)])
+    return poses, links
+
+
 def deskew_sweep(sweep: LidarSweep, T_prev_cur: np.ndarray, cfg: TargetlessConfig) -> np.ndarray:
     """Points of ``sweep`` in the LiDAR frame at its stamp, with the constant
     velocity of the odometry link ``T_prev_cur`` (previous sweep <- this one)."""
@@ -1097,11 +1109,7 @@ def _calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig, diag: W
         if len(use) < 2:
             raise CalibError("not enough LiDAR sweeps around the kept images")
         if "odometry" not in cache:
-            cache["odometry"] = lidar_odometry([sweeps[i].points for i in use])
-            if cfg.deskew and cfg.odometry_deskew_refit:
-                _, links0 = cache["odometry"]
-                cache["odometry"] = lidar_odometry([deskew_sweep(sweeps[i], links0[j - 1].T if j > 0 else links0[0].T,
-                                                                 cfg) for j, i in enumerate(use)])
+            cache["odometry"] = sweep_odometry([sweeps[i] for i in use], cfg)
         poses, links = cache["odometry"]
         stamps_u = stamps[use]
         P_img = np.array([interpolate_pose(stamps_u, poses, t) for t in t_img])
