@@ -469,7 +469,7 @@ def sweep_odometry(sweeps: list, cfg: TargetlessConfig) -> tuple[np.ndarray, lis
     estimate's links: the raw sweeps of a moving LiDAR are bent by the motion during the sweep, and ICP
     between bent sweeps comes out short and turned (``test_odometry_refit_on_deskewed_sweeps``)."""
     poses, links = lidar_odometry([s.points for s in sweeps])
-    if cfg.deskew and cfg.odometry_deskew_refit and len(links) > 0:
+    if cfg.deskew and cfg.odometry_deskew_refit:  # (lidar_odometry needs 2 sweeps: there is a link)
         poses, links = lidar_odometry([deskew_sweep(s, links[j - 1].T if j > 0 else links[0].T, cfg)
                                        for j, s in enumerate(sweeps)])
     return poses, links

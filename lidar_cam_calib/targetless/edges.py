@@ -684,6 +684,23 @@ def _scale(Hs: list, gs: list, naive: float, m: int) -> float:
     return max(float(np.sum(m2) / (m * max(k - 1, 1))), naive)
 
 
+def _fit_points(v: EdgeView, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig) -> np.ndarray | None:
+    """The view's edge points that the 6-DoF fit uses at the extrinsic ``X``, in the camera frame at its
+    exposure: the visible ones, evenly thinned to ``pose_max_points`` (the edges come in scan order);
+    None when fewer than ``view_min_points`` are seen."""
+    E = prepare_view(v, cfg).edges
+    if E.shape[0] < cfg.view_min_points:
+        return None
+    Tk = X @ inv_T(v.T_sweep_img)      # camera at this exposure <- sweep
+    vis = _visible(cam, Tk, E, occluders(v))
+    if vis.sum() < cfg.view_min_points:
+        return None
+    idx = np.flatnonzero(vis)
+    if idx.size > cfg.pose_max_points:
+        idx = idx[np.linspace(0, idx.size - 1, cfg.pose_max_points).astype(int)]
+    return transform_points(Tk, E[idx])
+
+
 def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | None = None,
                 direction: np.ndarray | None = None, up: np.ndarray | None = None,
                 tilt_prior_deg: float = 0.0, height_prior_m: float = 0.0,
@@ -713,18 +730,9 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
     K = cam.K
     V = []
     for v in views:
-        E = prepare_view(v, cfg).edges
-        if E.shape[0] < cfg.view_min_points:
-            continue
-        Tk = X @ inv_T(v.T_sweep_img)      # camera at this exposure <- sweep
-        vis = _visible(cam, Tk, E, occluders(v))
-        if vis.sum() < cfg.view_min_points:
-            continue
-        idx = np.flatnonzero(vis)
-        if idx.size > cfg.pose_max_points:  # evenly thinned (the edges come in scan order)
-            idx = idx[np.linspace(0, idx.size - 1, cfg.pose_max_points).astype(int)]
-        # the edge points in the camera frame at X (perturbed on the left from here on)
-        V.append({"q": transform_points(Tk, E[idx]), "view": v})
+        q = _fit_points(v, cam, X, cfg)
+        if q is not None:  # the edge points in the camera frame at X (perturbed on the left from here on)
+            V.append({"q": q, "view": v})
     n = sum(v["q"].shape[0] for v in V)
     if len(V) < 2 or n < cfg.min_points:
         return None
@@ -857,24 +865,16 @@ def refine_pose(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig | 
 def edge_group_information(views: list, cam: CameraModel, X: np.ndarray, cfg: EdgeConfig,
                            n_bands: int = 0) -> np.ndarray:
     """The information (Gauss-Newton, Cauchy-weighted, unscaled: the units of ``PoseEdgeResult.info``) of
-    the fine edge objective of :func:`refine_pose` at ``X`` (its visible points and thinning), split by
+    the fine edge objective of :func:`refine_pose` at ``X`` (its points, :func:`_fit_points`), split by
     group: (n_groups, 6, 6), one group per view (``n_bands`` 0; views with too few visible edges get
     zeros) or per band of image columns (``n_bands`` bands of equal width). What each group contributes
     to the fit's information at its optimum, which a leave-one-group-out refit elsewhere cannot say."""
     c = cfg.pose_cauchy_px
     out = np.zeros((n_bands if n_bands > 0 else len(views), 6, 6))
     for i, v in enumerate(views):
-        E = prepare_view(v, cfg).edges
-        if E.shape[0] < cfg.view_min_points:
+        q = _fit_points(v, cam, X, cfg)
+        if q is None:
             continue
-        Tk = X @ inv_T(v.T_sweep_img)
-        vis = _visible(cam, Tk, E, occluders(v))
-        if vis.sum() < cfg.view_min_points:
-            continue
-        idx = np.flatnonzero(vis)
-        if idx.size > cfg.pose_max_points:
-            idx = idx[np.linspace(0, idx.size - 1, cfg.pose_max_points).astype(int)]
-        q = transform_points(Tk, E[idx])
         uv, _ = cam.project(q)
         s3 = _sample(view_field(v, cfg.truncate_px, cfg.pose_fine_blur_px), uv)
         J = field_jacobian(cam.K, q, s3[:, 1:])
