@@ -209,13 +209,17 @@ def test_odometry_refit_on_deskewed_sweeps():
         pts = world[keep] - np.stack([x0 + v * t, np.zeros_like(t), np.full_like(t, h)], 1)
         sweeps.append(LidarSweep(period * k, pts + rng.normal(0, 0.01, pts.shape), time_s=t))
     cfg = TargetlessConfig()
-    assert cfg.deskew and cfg.odometry_deskew_refit
+    assert cfg.deskew and cfg.odometry_deskew_refit and cfg.odometry_refit_warm
     err = {}
-    for name, c in (("raw", dc.replace(cfg, odometry_deskew_refit=False)), ("refit", cfg)):
+    for name, c in (("raw", dc.replace(cfg, odometry_deskew_refit=False)), ("refit", cfg),
+                    ("cold refit", dc.replace(cfg, odometry_refit_warm=False))):
         poses, links = sweep_odometry(sweeps, c)
         err[name] = float(poses[-1][0, 3] - v * period * (len(sweeps) - 1))
     # the bent sweeps' ICP comes out short (about 0.3 m over the 9 m of five links); refitted, a third of that
+    # (the default refit is warm: each link from its first estimate alone, with the short correspondence radius;
+    # the cold one fits every link from all its starts again)
     assert err["raw"] < -0.2 and abs(err["refit"]) < 0.4 * abs(err["raw"]), err
+    assert abs(err["cold refit"]) < 0.4 * abs(err["raw"]), err
 
 
 @pytest.mark.skipif(not os.path.isdir(os.path.join(SHARED_DATA, "kitti_2011_09_26_seq_dev")),

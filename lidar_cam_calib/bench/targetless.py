@@ -249,6 +249,7 @@ def bench_windows(run, seed: int, speed: str, n_windows: int, known_offset: bool
         elif w["accepted"]:
             w["not_published"] = why
         w["runtime_s"] = time.perf_counter() - t_start
+        w["timings_s"] = {k: round(float(v), 3) for k, v in d.timings_s.items()}  # per stage: where the time went
         windows.append(w)
         cal.next_window()
     ref0 = min(run.sweeps, key=lambda sw: abs(sw.stamp_s - windows[0]["first_image_s"])) if windows else None

@@ -100,7 +100,8 @@ def _link_fit(src: np.ndarray, tgt: np.ndarray, tree: cKDTree, nrm: np.ndarray, 
 
 def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0, iterations: int = 20,
                    min_dist_m: float = 0.3, raw_points: int = 0, inlier_m: float = 0.1, steady_m: float = 0.1,
-                   steady_score: float = 0.9) -> tuple[np.ndarray, list]:
+                   steady_score: float = 0.9, init_links: list | None = None,
+                   warm_iterations: int = 20) -> tuple[np.ndarray, list]:
     """Poses (K,4,4) ``T_first_k`` of every sweep and the per-link ICP results.
 
     Each link is fitted from the constant-velocity start, from rest and from the horizontal shift that
@@ -115,7 +116,12 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
 
     ``raw_points > 0``: no voxel means (a fixed voxel grid in each sweep's own frame aliases the moving
     ring pattern and biases the travelled distance by up to ~1 %); the target is the raw sweep and the
-    source a random subset of ``raw_points`` raw points."""
+    source a random subset of ``raw_points`` raw points.
+
+    ``init_links`` (one 4x4 per link): each link is fitted from that start alone, without the other starts
+    and the neighbours' passes (a refit on sweeps de-skewed with a first estimate's links, which moves
+    each link by centimetres), with the correspondence radius at ``min_dist_m`` from the start and at most
+    ``warm_iterations`` ICP iterations."""
     if len(clouds) < 2:
         raise CalibError(f"LiDAR odometry needs at least 2 sweeps, got {len(clouds)}")
     cfg = AlignConfig(icp_iterations=iterations, icp_max_dist_m=1.5, icp_min_dist_m=min_dist_m)
@@ -133,6 +139,19 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
         tree = cKDTree(d)
         trees.append(tree)
         normals.append(estimate_normals(d, tree)[0])
+    if init_links is not None:
+        if len(init_links) != len(clouds) - 1:
+            raise CalibError(f"LiDAR odometry: {len(init_links)} starts for {len(clouds) - 1} links")
+        # started centimetres from the answer: the correspondence radius starts where the cold fit's ends
+        cfg_w = AlignConfig(icp_iterations=warm_iterations, icp_max_dist_m=min_dist_m, icp_min_dist_m=min_dist_m)
+        links = []
+        for k in range(1, len(clouds)):
+            r, _ = _link_fit(subs[k], down[k - 1], trees[k - 1], normals[k - 1], np.asarray(init_links[k - 1]),
+                             cfg_w, inlier_m)
+            if r is None:
+                raise CalibError(f"LiDAR odometry failed between sweeps {k - 1} and {k}: the scans do not overlap")
+            links.append(r)
+        return _chain_poses(links), links
     links, scores = [], []
     vel = np.eye(4)
     for k in range(1, len(clouds)):
@@ -167,10 +186,15 @@ def lidar_odometry(clouds: list, voxel_m: float = 0.4, max_range_m: float = 30.0
             r, sc = _link_fit(subs[k + 1], down[k], trees[k], normals[k], T0, cfg, inlier_m)
             if r is not None and sc > scores[k]:
                 links[k], scores[k] = r, sc
+    return _chain_poses(links), links
+
+
+def _chain_poses(links: list) -> np.ndarray:
+    """(K,4,4) poses ``T_first_k`` chained from the links (``T_prev_cur`` each)."""
     poses = [np.eye(4)]
     for r in links:
         poses.append(poses[-1] @ r.T)
-    return np.array(poses), links
+    return np.array(poses)
 
 
 def interpolate_pose(stamps: np.ndarray, poses: np.ndarray, t: float) -> np.ndarray:
