@@ -25,6 +25,7 @@ long run stopped early keeps what it measured.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -290,15 +291,18 @@ def _unpublished(windows: list, reason: str) -> dict:
 
 
 def refuse_runs(runs: list, min_windows: int, fuse_windows: int = 10, outlier_p: float = 0.001,
-                provisional: bool = True) -> list:
+                provisional: bool = True, correlation: float | None = None) -> list:
     """The ``ours_fused`` record of each ``bench_windows`` run recomputed from its windows' stored estimates
     with other fusion settings (exact: the fusion only combines the windows' results; ``provisional``:
-    ``fuse_provisional``, which needs runs that stored their provisional windows). The published result is
-    the last fusion that had ``min_windows`` agreeing windows, as the node keeps it."""
+    ``fuse_provisional``, which needs runs that stored their provisional windows; ``correlation``:
+    ``fuse_window_correlation``, the default's when None). The published result is the last fusion that had
+    ``min_windows`` agreeing windows, as the node keeps it."""
     from ..core.camera import CameraModel
     from ..targetless.calibrator import fuse_accepted
     cfg = TargetlessConfig(fuse_min_windows=min_windows, fuse_windows=fuse_windows, fuse_outlier_p=outlier_p,
                            fuse_provisional=provisional)
+    if correlation is not None:
+        cfg = dataclasses.replace(cfg, fuse_window_correlation=correlation)
     out = []
     for r in runs:
         cam = CameraModel(**r["camera"])
