@@ -619,6 +619,39 @@ def test_translation_ambiguity_refuses_edges_and_clouds_that_disagree():
                                   "coarse_bev_disagreement_m": 2.46}) == ""
 
 
+def test_coarse_choice_a_tie_in_the_edges_keeps_the_distinct_birds_eye_peak():
+    """The coarse candidates (the highest bird's-eye peak first) ranked by their edge fits. Slow 5706's
+    second window: the edges met candidate 4, 2.85 m along the street, 0.06 % better than the highest peak
+    (0.7029 against 0.7025), while the bird's-eye peak stood out by 1.78; the refusal then said the edges
+    and the clouds disagree, and the 0.01 mm the odometry's refit moved decided the tie either way. With
+    ``ours_coarse_tie_keeps_bev`` a tie is no vote: the highest peak is kept, and the window comes out
+    0.51 / 0.20 px off both ways. Distinct edges, or a peak that does not stand out, still let the edges
+    choose."""
+    import types
+    from lidar_cam_calib.targetless.calibrator import _coarse_choice
+
+    def fit(x, inl):
+        return types.SimpleNamespace(T=make_T(np.eye(3), [x, 0.0, 0.0]), inliers=inl)
+    cfg = TargetlessConfig()
+    assert cfg.ours_coarse_tie_keeps_bev
+    tie = [fit(0.0, 0.7025), fit(1.2, 0.61), None, fit(-1.1, 0.55), fit(2.85, 0.7029)]
+    best, ratio = _coarse_choice(tie, 1.78, 0.5, cfg)
+    assert best == 0 and abs(ratio - 0.7025 / 0.7029) < 1e-9
+    # the old rule: the edges' marginal choice
+    best, ratio = _coarse_choice(tie, 1.78, 0.5, dataclasses.replace(cfg, ours_coarse_tie_keeps_bev=False))
+    assert best == 4 and 1.0 < ratio < 1.001
+    # a bird's-eye peak that does not stand out: the edges choose, however narrowly
+    assert _coarse_choice(tie, 1.05, 0.5, cfg)[0] == 4
+    # distinct edges elsewhere: the edges choose (the disagreement gate then judges the two votes)
+    distinct = tie[:4] + [fit(2.85, 0.85)]
+    assert _coarse_choice(distinct, 1.78, 0.5, cfg)[0] == 4
+    # the highest peak's edges too poor to keep: the edges' choice stands
+    poor = [fit(0.0, 0.45)] + tie[1:]
+    assert _coarse_choice(poor, 1.78, 0.5, cfg)[0] == 4
+    # the edges meet poorly everywhere: no choice (the highest peak is used)
+    assert _coarse_choice([fit(0.0, 0.3), fit(2.0, 0.31)], 1.78, 0.5, cfg)[0] is None
+
+
 def _ring_scan(o: np.ndarray, cylinders: list, wall_y: float) -> np.ndarray:
     """A 32-ring LiDAR at ``o`` (world) over a flat road (z = -1.8), a wall along the street at
     ``wall_y`` and vertical cylinders ``(x, y, radius, height)``; points in the LiDAR frame."""
