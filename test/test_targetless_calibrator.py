@@ -645,6 +645,9 @@ def test_coarse_choice_a_tie_in_the_edges_keeps_the_distinct_birds_eye_peak():
     # distinct edges elsewhere: the edges choose (the disagreement gate then judges the two votes)
     distinct = tie[:4] + [fit(2.85, 0.85)]
     assert _coarse_choice(distinct, 1.78, 0.5, cfg)[0] == 4
+    # the edges' choice ties with a third candidate but beats the highest peak clearly: the edges choose
+    third = [fit(0.0, 0.57), fit(1.2, 0.69), None, fit(-1.1, 0.55), fit(2.85, 0.70)]
+    assert _coarse_choice(third, 1.78, 0.5, cfg)[0] == 4
     # the highest peak's edges too poor to keep: the edges' choice stands
     poor = [fit(0.0, 0.45)] + tie[1:]
     assert _coarse_choice(poor, 1.78, 0.5, cfg)[0] == 4

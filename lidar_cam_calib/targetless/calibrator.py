@@ -240,8 +240,8 @@ class TargetlessConfig:
     ours_coarse_tie_keeps_bev: bool = cfg_field(
         True, "ours: when the image edges choose a candidate by less than ours_min_coarse_edge_ratio and the "
               "bird's-eye peak stands out (ours_min_bev_peak_ratio), the highest peak is kept (if its edges "
-              "meet well enough) rather than the edges' marginal choice (stop 40: in 377 stored windows the "
-              "edges' marginal choice was 21-678 px off all 6 times)")
+              "meet well enough) rather than the edges' marginal choice (stop 40: in 347 stored windows the "
+              "edges chose another candidate by less than 1.15x 6 times, each time 21-678 px off)")
     ours_coarse_agree_m: float = cfg_field(1.0, "ours, gate: when the bird's-eye peak stands out (above "
                                                 "ours_min_bev_peak_ratio), the candidate the image edges chose "
                                                 "must end within this of it (the candidates' spacing: a fit "
@@ -1063,16 +1063,16 @@ def _coarse_choice(fits: list, bev_ratio: float, min_inliers: float, cfg: Target
     """(the coarse candidate kept, or None for the highest bird's-eye peak; its edge inlier ratio over the
     best elsewhere) from the candidates' edge fits ``fits`` (the highest peak's first) and the bird's-eye
     peak ratio. The edges' choice (:func:`_rank_candidates`), unless they meet poorly everywhere; with
-    ``ours_coarse_tie_keeps_bev``, the highest peak when the edges prefer another by less than
+    ``ours_coarse_tie_keeps_bev``, the highest peak when the edges prefer another over it by less than
     ``ours_min_coarse_edge_ratio`` and the bird's-eye peak stands out (a tie in the edges is no vote
     against the clouds: which candidate wins a tie turns on bits)."""
     best_i, ratio_e = _rank_candidates(fits)
     if best_i is not None and fits[best_i].inliers < min_inliers:
         # the edges meet poorly wherever the candidates put them: keep the highest peak
         return None, float("nan")
-    if (cfg.ours_coarse_tie_keeps_bev and best_i not in (None, 0) and ratio_e < cfg.ours_min_coarse_edge_ratio
-            and bev_ratio >= cfg.ours_min_bev_peak_ratio and fits[0] is not None
-            and fits[0].inliers >= min_inliers):
+    if (cfg.ours_coarse_tie_keeps_bev and best_i not in (None, 0) and bev_ratio >= cfg.ours_min_bev_peak_ratio
+            and fits[0] is not None and fits[0].inliers >= min_inliers
+            and fits[best_i].inliers < cfg.ours_min_coarse_edge_ratio * fits[0].inliers):
         return 0, _rank_ratio(fits, 0)
     return best_i, ratio_e
 
