@@ -238,10 +238,11 @@ class TargetlessConfig:
                                                        "bird's-eye peak)",
                                                   range=(1.0, 10.0))
     ours_coarse_tie_keeps_bev: bool = cfg_field(
-        True, "ours: when the image edges choose a candidate by less than ours_min_coarse_edge_ratio and the "
-              "bird's-eye peak stands out (ours_min_bev_peak_ratio), the highest peak is kept (if its edges "
-              "meet well enough) rather than the edges' marginal choice (stop 40: in 347 stored windows the "
-              "edges chose another candidate by less than 1.15x 6 times, each time 21-678 px off)")
+        True, "ours: when the image edges prefer another candidate over the highest bird's-eye peak by less "
+              "than ours_min_coarse_edge_ratio and that peak stands out (ours_min_bev_peak_ratio), the highest "
+              "peak is kept (if its edges meet well enough) rather than the edges' marginal choice (stop 40: in "
+              "347 stored windows the edges chose another candidate by less than 1.15x 6 times, each time "
+              "21-678 px off)")
     ours_coarse_agree_m: float = cfg_field(1.0, "ours, gate: when the bird's-eye peak stands out (above "
                                                 "ours_min_bev_peak_ratio), the candidate the image edges chose "
                                                 "must end within this of it (the candidates' spacing: a fit "
