@@ -474,6 +474,7 @@ M_ROAD, M_FACADE, M_ROOF, M_POLE, M_BARK, M_FOLIAGE, M_CAR, M_GLASS, M_SIGN, M_W
     M_SKIN, M_KIOSK, M_BIN = range(14)
 _REFLECTIVITY = np.array([0.12, 0.32, 0.25, 0.4, 0.22, 0.3, 0.35, 0.06, 0.95, 0.3, 0.25, 0.3, 0.3, 0.3])
 _EPS = 1e-6
+_KERB_HALF_M = 0.12  # kerb stones: a band this far either side of the road's edge
 
 
 @dataclass
@@ -991,7 +992,7 @@ def _albedo(world: StreetWorld, pid, uv, face, pts, foot):
             joint = np.minimum(np.abs(np.mod(sw_, 0.4) - 0.2), np.abs(np.mod(dw_, 0.4) - 0.2))
             slab = 1.0 - (joint > 0.18) * _fade(0.4, f[walk]) * 0.35
             g[walk] = (0.5 + 0.35 * (n[walk] - 0.5)) * slab
-        g[np.abs(ad - half) < 0.12] = 0.65  # kerb stones
+        g[np.abs(ad - half) < _KERB_HALF_M] = 0.65  # kerb stones
         beyond = ad >= half + L.sidewalk_width_m
         g[beyond] = 0.35 + 0.4 * (n[beyond] - 0.5)
         road = np.flatnonzero(ad < half)
@@ -1074,9 +1075,14 @@ def _lidar_reflectivity(world: StreetWorld, pid, pts):
     g = world.material_arr[pid] == M_ROAD
     if g.any():
         s, d = world.street.from_world(pts[g, 0], pts[g, 1])
-        paint = _road_paint(s, d, world.sc.layout)
+        L = world.sc.layout
+        paint = _road_paint(s, d, L)
+        ad = np.abs(d)
+        # the same surfaces the camera renders (_albedo): asphalt, paint, the kerb stones' 0.24 m band of
+        # bright concrete along the road's edge, then the sidewalk's slabs
         r[g] = np.where(paint > 0.5, world.sc.lidar.paint_reflectivity,
-                        np.where(np.abs(d) < world.sc.layout.road_width_m / 2, 0.1, 0.2))
+                        np.where(np.abs(ad - L.road_width_m / 2) < _KERB_HALF_M, 0.3,
+                                 np.where(ad < L.road_width_m / 2, 0.1, 0.2)))
     return r
 
 
