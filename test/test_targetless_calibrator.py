@@ -710,3 +710,49 @@ def test_moving_clusters_finds_people_walking_that_the_point_test_keeps():
             assert np.mean(moving[ped_pts]) > 0.95
         else:
             assert not moving.any()
+
+
+def test_sfm_view_rotations_replace_the_odometry_rotation_between_sweep_and_exposure():
+    """Each view's rotation between its sweep's stamp and its exposure comes from the SfM's camera rotations
+    (interpolated to the stamp, extrapolated past the ends) through the extrinsic's rotation; its translation,
+    and views that do not say which sweep and image they are, stay as they were."""
+    from lidar_cam_calib.core.geometry import so3_exp, so3_log
+    from lidar_cam_calib.targetless.calibrator import sfm_view_rotations
+    from lidar_cam_calib.targetless.edges import EdgeView
+    rng = np.random.default_rng(3)
+    # the LiDAR turns at a constant rate about a fixed axis (the car pitching and turning): LiDAR -> world
+    w = np.radians([0.4, 1.5, 6.0])   # rad/s, LiDAR axes
+
+    def R_wl(t):
+        return so3_exp(w * t)
+    R_cl = so3_exp(np.radians([-91.0, 2.0, 88.0]))  # camera <- LiDAR
+    t_ex = 0.013 + 0.1 * np.arange(6)
+    # the SfM's poses: T_cam_k_world with world = camera 0 (any gauge: the relative rotations matter)
+    R_wc = [R_wl(t) @ R_cl.T for t in t_ex]       # camera k -> world
+    poses = []
+    for R in R_wc:
+        T = np.eye(4)
+        T[:3, :3] = (R_wc[0].T @ R).T              # world(camera 0) -> camera k
+        T[:3, 3] = rng.normal(0, 1, 3)
+        poses.append(T)
+    views, truth = [], []
+    for k, stamp in [(0, -0.04), (2, 0.2), (3, 0.33), (5, 0.56)]:  # before the first exposure, after the last
+        T0 = np.eye(4)
+        T0[:3, :3] = so3_exp(rng.normal(0, 0.003, 3))  # the odometry's rotation, a few tenths of a degree off
+        T0[:3, 3] = [1.1, 0.02, -0.01]
+        views.append(EdgeView(np.zeros((4, 4)), np.zeros((1, 3)), np.zeros((1, 3)), None, np.ones(1, bool), T0,
+                              sweep_stamp_s=stamp, image_index=k))
+        truth.append(R_wl(stamp).T @ R_wl(t_ex[k]))   # LiDAR at the stamp <- LiDAR at the exposure
+    views.append(EdgeView(np.zeros((4, 4)), np.zeros((1, 3)), np.zeros((1, 3)), None, np.ones(1, bool), np.eye(4)))
+    out, moved = sfm_view_rotations(views, np.array(poses), t_ex, R_cl)
+    assert len(out) == len(views)
+    for v0, v, R in zip(views, out, truth):
+        err = np.degrees(np.linalg.norm(so3_log(v.T_sweep_img[:3, :3] @ R.T)))
+        assert err < 1e-6, err
+        assert np.allclose(v.T_sweep_img[:3, 3], v0.T_sweep_img[:3, 3])
+        assert v.image is v0.image and v.edges is v0.edges  # the same view, only the pose changed
+    assert out[-1] is views[-1]
+    assert 0.05 < moved < 1.0
+    # poses that do not fit the exposures leave the views alone
+    same, moved0 = sfm_view_rotations(views, np.array(poses[:3]), t_ex, R_cl)
+    assert same is views and moved0 == 0.0

@@ -454,6 +454,8 @@ class EdgeView:
     dist: np.ndarray | None = None   # the image's edge-distance map, filled by prepare_view
     fields: dict = dataclasses.field(default_factory=dict, repr=False)  # filled by view_field
     occl: np.ndarray | None = None   # every other static point (the visibility test's occluders), by occluders
+    sweep_stamp_s: float | None = None  # the sweep's stamp (LiDAR clock), if known
+    image_index: int = -1            # the image's index in its window (-1: unknown)
 
 
 def occluders(v: EdgeView) -> np.ndarray:
