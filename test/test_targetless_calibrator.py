@@ -756,3 +756,18 @@ def test_sfm_view_rotations_replace_the_odometry_rotation_between_sweep_and_expo
     # poses that do not fit the exposures leave the views alone
     same, moved0 = sfm_view_rotations(views, np.array(poses[:3]), t_ex, R_cl)
     assert same is views and moved0 == 0.0
+    # a de-skewed sweep: its points were brought to the stamp with the odometry's rotation rate, so the SfM's
+    # rotation is taken at the time the LiDAR faced the camera and the de-skew's rotation over that time added
+    az = np.linspace(-np.pi, np.pi, 3600, endpoint=False)
+    raw = np.stack([10 * np.cos(az), 10 * np.sin(az), np.zeros_like(az)], 1)
+    t_pt = 0.1 * np.mod(np.pi - az, 2 * np.pi) / (2 * np.pi)  # clockwise from the rear, 0.1 s a turn
+    rate = np.radians([0.3, 2.5, 5.0])  # rad/s, the odometry's (a little off the true one)
+    a = R_cl.T @ np.array([0.0, 0.0, 1.0])
+    az_c = math.atan2(a[1], a[0])
+    tau = 0.1 * np.mod(np.pi - az_c, 2 * np.pi) / (2 * np.pi)
+    v = EdgeView(np.zeros((4, 4)), raw, raw, None, np.ones(az.size, bool), np.eye(4), sweep_stamp_s=0.2,
+                 image_index=2, time_s=t_pt, deskew_rate=rate)
+    (out1,), _ = sfm_view_rotations([v], np.array(poses), t_ex, R_cl)
+    R = so3_exp(rate * tau) @ R_wl(0.2 + tau).T @ R_wl(t_ex[2])
+    assert np.degrees(np.linalg.norm(so3_log(out1.T_sweep_img[:3, :3] @ R.T))) < 1e-3
+    assert np.degrees(np.linalg.norm(so3_log(out1.T_sweep_img[:3, :3] @ (R_wl(0.2).T @ R_wl(t_ex[2])).T))) > 0.01

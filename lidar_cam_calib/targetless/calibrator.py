@@ -496,15 +496,20 @@ def sweep_odometry(sweeps: list, cfg: TargetlessConfig) -> tuple[np.ndarray, lis
     return poses, links
 
 
+def sweep_times(sweep: LidarSweep, cfg: TargetlessConfig) -> np.ndarray:
+    """Each point's time after the sweep's stamp (s): the driver's, else from its azimuth."""
+    if sweep.time_s is not None:
+        return sweep.time_s
+    p = sweep.points
+    return spin_time_s(p[:, 0], p[:, 1], cfg.sweep_period_s, cfg.sweep_spin, cfg.sweep_start_azimuth_deg,
+                       cfg.sweep_stamp_fraction)
+
+
 def deskew_sweep(sweep: LidarSweep, T_prev_cur: np.ndarray, cfg: TargetlessConfig) -> np.ndarray:
     """Points of ``sweep`` in the LiDAR frame at its stamp, with the constant
     velocity of the odometry link ``T_prev_cur`` (previous sweep <- this one)."""
     p = sweep.points
-    if sweep.time_s is not None:
-        t = sweep.time_s
-    else:
-        t = spin_time_s(p[:, 0], p[:, 1], cfg.sweep_period_s, cfg.sweep_spin, cfg.sweep_start_azimuth_deg,
-                        cfg.sweep_stamp_fraction)
+    t = sweep_times(sweep, cfg)
     xi_r = so3_log(T_prev_cur[:3, :3]) / cfg.sweep_period_s
     xi_t = T_prev_cur[:3, 3] / cfg.sweep_period_s
     out = np.empty_like(p)
@@ -980,14 +985,31 @@ def _edge_basins(views: list, cam, pe, Ll: np.ndarray, T_link: np.ndarray, cfg: 
     return best, (D.T @ D / len(near) if len(near) > 1 else None), len(near), len(starts)
 
 
+def _camera_sector_time(v, R_cl: np.ndarray, half_deg: float = 20.0) -> float:
+    """When (s after the sweep's stamp) the LiDAR scanned the camera's side: the median time of the view's
+    returns within ``half_deg`` of the camera's optical axis in azimuth (0 when unknown)."""
+    if v.time_s is None or v.time_s.shape[0] != v.raw.shape[0] or v.raw.shape[0] == 0:
+        return 0.0
+    a = np.asarray(R_cl, float).T @ np.array([0.0, 0.0, 1.0])
+    if math.hypot(a[0], a[1]) < 0.2:  # a camera looking up or down: no sector
+        return 0.0
+    az = np.arctan2(v.raw[:, 1], v.raw[:, 0]) - math.atan2(a[1], a[0])
+    near = np.abs(np.angle(np.exp(1j * az))) <= math.radians(half_deg)
+    return float(np.median(v.time_s[near])) if near.any() else 0.0
+
+
 def sfm_view_rotations(views: list, sfm_poses: np.ndarray, exposures: np.ndarray, R_cl: np.ndarray) -> tuple:
     """(views, the largest change in deg): each view's ``T_sweep_img`` (LiDAR at its sweep's stamp <- LiDAR
-    at its image's exposure) with the rotation taken from the SfM: the camera's rotation at the sweep's stamp
-    interpolated (geodesically, extrapolated past the ends) between the two nearest exposures, relative to
-    its rotation at the view's exposure, turned into the LiDAR frame by ``R_cl`` (camera <- LiDAR). The
-    translation is kept. ``sfm_poses``: (N,4,4) T_cam_k_world, ``exposures``: (N,) the images' exposure
-    times on the LiDAR clock, in the same order. A view without its sweep's stamp or image index, or with
-    non-finite SfM poses around it, is kept as it is."""
+    at its image's exposure) with the rotation taken from the SfM. The camera's rotation is interpolated
+    (geodesically, extrapolated past the ends) between the two nearest exposures to the time the LiDAR
+    scanned the camera's side (``_camera_sector_time`` after the sweep's stamp), taken relative to its rotation
+    at the view's exposure and turned into the LiDAR frame by ``R_cl`` (camera <- LiDAR); the de-skew's own
+    rotation over that time (``deskew_rate``, the odometry link's) then brings it to the stamp, so that the
+    points the camera sees, de-skewed with the odometry's rate, are undone to when they were measured
+    before the SfM takes them to the exposure. The translation is kept. ``sfm_poses``: (N,4,4)
+    T_cam_k_world, ``exposures``: (N,) the images' exposure times on the LiDAR clock, in the same order. A
+    view without its sweep's stamp or image index, or with non-finite SfM poses around it, is kept as it
+    is."""
     t = np.asarray(exposures, float)
     n = t.size
     if n < 2 or len(sfm_poses) != n:
@@ -1000,16 +1022,20 @@ def sfm_view_rotations(views: list, sfm_poses: np.ndarray, exposures: np.ndarray
         if v.sweep_stamp_s is None or not 0 <= k < n:
             out.append(v)
             continue
-        i = int(np.clip(np.searchsorted(t, v.sweep_stamp_s) - 1, 0, n - 2))
+        tau = _camera_sector_time(v, R_cl) if v.deskew_rate is not None else 0.0
+        ts = v.sweep_stamp_s + tau
+        i = int(np.clip(np.searchsorted(t, ts) - 1, 0, n - 2))
         span = t[i + 1] - t[i]
         if not (span > 0 and np.all(np.isfinite(C[i])) and np.all(np.isfinite(C[i + 1])) and
                 np.all(np.isfinite(C[k]))):
             out.append(v)
             continue
-        a = (v.sweep_stamp_s - t[i]) / span
+        a = (ts - t[i]) / span
         C_s = C[i] @ so3_exp(a * so3_log(C[i].T @ C[i + 1]))
         T = np.array(v.T_sweep_img, float)
         R = R_cl.T @ C_s.T @ C[k] @ R_cl
+        if tau != 0.0:
+            R = so3_exp(np.asarray(v.deskew_rate, float) * tau) @ R
         moved = max(moved, float(np.degrees(np.linalg.norm(so3_log(R @ T[:3, :3].T)))))
         T[:3, :3] = R
         out.append(dataclasses.replace(v, T_sweep_img=T))
@@ -1273,7 +1299,10 @@ def _calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig, diag: W
                 views.append(EdgeView(ims[k], sw.points, pk, sw.intensity, st | (gd <= cfg.ground_static_m),
                                       inv_T(poses[jk]) @ P_img[k], ring=sw.ring,
                                       ground=gd <= cfg.edges.paint_ground_m if cfg.edges.paint_ground_m > 0 else None,
-                                      sweep_stamp_s=float(stamps_u[jk]), image_index=k))
+                                      sweep_stamp_s=float(stamps_u[jk]), image_index=k,
+                                      time_s=sweep_times(sw, cfg),
+                                      deskew_rate=so3_log(link_of(jk).T[:3, :3]) / cfg.sweep_period_s
+                                      if cfg.deskew else None))
         for v in views:  # each view's LiDAR edges and image edge-distance map (computed once, on first use)
             prepare_view(v, cfg.edges)
         tm["edge_views"] = time.perf_counter() - t_views

@@ -456,6 +456,8 @@ class EdgeView:
     occl: np.ndarray | None = None   # every other static point (the visibility test's occluders), by occluders
     sweep_stamp_s: float | None = None  # the sweep's stamp (LiDAR clock), if known
     image_index: int = -1            # the image's index in its window (-1: unknown)
+    time_s: np.ndarray | None = None  # (N,) each raw point's time after the sweep's stamp, if known
+    deskew_rate: np.ndarray | None = None  # (3,) the rotation rate (rad/s, LiDAR axes) the de-skew used
 
 
 def occluders(v: EdgeView) -> np.ndarray:
