@@ -402,8 +402,9 @@ class TargetlessConfig:
     ours_edge_images: int = cfg_field(8, "ours: images of the window the edge refinement uses", range=(1, 30))
     ours_edge_view_rotation_sfm: bool = cfg_field(
         True, "ours: each edge view's LiDAR rotation between its sweep's stamp and the image's exposure comes "
-              "from the SfM's camera rotations (interpolated to the sweep's stamp, turned into the LiDAR frame "
-              "by the extrinsic's rotation found so far) rather than from the LiDAR odometry's links. On a "
+              "from the SfM's camera rotations (interpolated to when the LiDAR faced the camera, turned into "
+              "the LiDAR frame by the extrinsic's rotation found so far, then to the stamp by the de-skew's own "
+              "rotation: sfm_view_rotations) rather than from the LiDAR odometry's links. On a "
               "16-beam LiDAR at 70 km/h the links' pitch erred 0.05-0.11 deg on average (0.1-0.2 rms) even "
               "between sweeps de-skewed with the true motion, the SfM's relative rotations 0.01-0.03 deg; "
               "the images' pitch error became the extrinsic's (simulated fast 7004: the edge fit from the "
