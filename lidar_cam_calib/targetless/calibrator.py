@@ -1269,6 +1269,9 @@ def _calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig, diag: W
                 if j not in ground_cache:
                     ground_cache[j] = ground_distance(sweeps[use[j]].points, j)
                 return ground_cache[j]
+            # the points' times and the de-skew's rate are only read by sfm_view_rotations (a sweep without
+            # per-point times would have them computed from every point's azimuth for nothing)
+            sector = cfg.deskew and cfg.ours_edge_view_rotation_sfm
             for k in range(min(cfg.ours_edge_images, len(images))):
                 jk = int(np.argmin(np.abs(stamps_u - t_img[k])))
                 sw = sweeps[use[jk]]
@@ -1301,9 +1304,9 @@ def _calibrate_window(images: list, sweeps: list, cfg: TargetlessConfig, diag: W
                                       inv_T(poses[jk]) @ P_img[k], ring=sw.ring,
                                       ground=gd <= cfg.edges.paint_ground_m if cfg.edges.paint_ground_m > 0 else None,
                                       sweep_stamp_s=float(stamps_u[jk]), image_index=k,
-                                      time_s=sweep_times(sw, cfg),
+                                      time_s=sweep_times(sw, cfg) if sector else None,
                                       deskew_rate=so3_log(link_of(jk).T[:3, :3]) / cfg.sweep_period_s
-                                      if cfg.deskew else None))
+                                      if sector else None))
         for v in views:  # each view's LiDAR edges and image edge-distance map (computed once, on first use)
             prepare_view(v, cfg.edges)
         tm["edge_views"] = time.perf_counter() - t_views
